@@ -1,0 +1,2 @@
+//! GPU kernels of texavatars, written in CubeCL.
+pub mod splat;

@@ -1,0 +1,4 @@
+//! File formats shared by the commands: `.npy` arrays and PNG images.
+
+pub mod image;
+pub mod npy;

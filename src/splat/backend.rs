@@ -1,0 +1,406 @@
+//! The splat operator as a burn backend extension.
+//!
+//! [`SplatBackend`] is implemented for the CPU backends (ndarray and flex, by the tile renderer
+//! of [`crate::splat::cpu`]), for burn's cubecl backend (wgpu, by the kernels of
+//! `texavatars-kernels` through [`crate::splat::gpu`]) and for `Autodiff<B>` with a
+//! handwritten backward that calls the inner backend's [`SplatBackend::splat_backward`].
+
+// burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
+#![allow(deprecated)]
+
+use burn::backend::autodiff::{
+    Autodiff,
+    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
+    grads::Gradients,
+    ops::{Backward, Ops, OpsKind},
+};
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::backend::{
+    AutodiffBackend, Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
+};
+use burn::tensor::{Shape, TensorData};
+
+use crate::camera::Camera;
+use crate::splat::cpu;
+
+/// Host-side parameters of one render: the camera and the background colour.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SplatParams {
+    /// The camera.
+    pub camera: Camera,
+    /// Background colour (RGB), composited behind the Gaussians.
+    pub background: [f32; 3],
+}
+
+/// The differentiable inputs of a render.
+///
+/// # Shapes
+/// - `means`: [N, 3] world-space centres
+/// - `cov6`: [N, 6] world-space covariances (xx, xy, xz, yy, yz, zz)
+/// - `colors`: [N, 3] RGB
+/// - `opacities`: [N] opacity after the sigmoid
+#[derive(ExtensionType, Debug, Clone)]
+pub struct SplatInputs<B: Backend> {
+    pub means: FloatTensor<B>,
+    pub cov6: FloatTensor<B>,
+    pub colors: FloatTensor<B>,
+    pub opacities: FloatTensor<B>,
+}
+
+/// What a forward pass keeps for its backward pass.
+///
+/// # Shapes
+/// - `out`: [H, W, 4] RGB and final transmittance
+/// - `projected`: [N, P] per-Gaussian projection (layout private to each implementation)
+/// - `gaussian_from_isect`: [M] (at least one element) the Gaussian of each tile intersection
+/// - `tile_ranges`: [T, 2] `[start, end)` per tile
+/// - `last`: [H, W] one past the last composited intersection per pixel, tile-relative
+#[derive(ExtensionType, Debug, Clone)]
+pub struct SplatState<B: Backend> {
+    pub out: FloatTensor<B>,
+    pub projected: FloatTensor<B>,
+    pub gaussian_from_isect: IntTensor<B>,
+    pub tile_ranges: IntTensor<B>,
+    pub last: IntTensor<B>,
+}
+
+/// Gradients of the loss w.r.t. the four inputs (same shapes as [`SplatInputs`]).
+#[derive(ExtensionType, Debug, Clone)]
+pub struct SplatGrads<B: Backend> {
+    pub means: FloatTensor<B>,
+    pub cov6: FloatTensor<B>,
+    pub colors: FloatTensor<B>,
+    pub opacities: FloatTensor<B>,
+}
+
+/// Backends that can render Gaussians with the fused tile rasterizer.
+#[backend_extension(NdArray, Flex, Autodiff)]
+pub trait SplatBackend: Backend {
+    /// Differentiable render: returns [H, W, 4] (RGB, final transmittance).
+    fn splat(
+        #[extension_type] inputs: SplatInputs<Self>,
+        params: SplatParams,
+    ) -> FloatTensor<Self> {
+        Self::splat_forward(inputs, params).out
+    }
+
+    /// Forward pass, keeping what the backward pass needs.
+    fn splat_forward(
+        #[extension_type] inputs: SplatInputs<Self>,
+        params: SplatParams,
+    ) -> SplatState<Self>;
+
+    /// Backward pass: `grad_out` [H, W, 4] is dL/d(RGB, T).
+    fn splat_backward(
+        #[extension_type] inputs: SplatInputs<Self>,
+        #[extension_type] state: SplatState<Self>,
+        grad_out: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> SplatGrads<Self>;
+}
+
+// ---------------------------------------------------------------------------------------------
+// CPU backends: the tile renderer on host memory.
+
+fn read_floats<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
+    let data = burn::tensor::try_read_sync(B::float_into_data(t))
+        .expect("synchronous read-back is supported on CPU backends")
+        .expect("reading a CPU tensor cannot fail");
+    data.iter::<f32>().collect()
+}
+
+fn read_ints<B: Backend>(t: IntTensor<B>) -> Vec<u32> {
+    let data = burn::tensor::try_read_sync(B::int_into_data(t))
+        .expect("synchronous read-back is supported on CPU backends")
+        .expect("reading a CPU tensor cannot fail");
+    data.iter::<i64>().map(|v| v as u32).collect()
+}
+
+fn floats<B: Backend>(v: Vec<f32>, shape: &[usize], device: &B::Device) -> FloatTensor<B> {
+    B::float_from_data(TensorData::new(v, Shape::from(shape.to_vec())), device)
+}
+
+fn ints<B: Backend>(v: Vec<u32>, shape: &[usize], device: &B::Device) -> IntTensor<B> {
+    let v: Vec<i32> = v.into_iter().map(|x| x as i32).collect();
+    B::int_from_data(TensorData::new(v, Shape::from(shape.to_vec())), device)
+}
+
+/// Floats per Gaussian in the CPU `projected` tensor.
+const CPU_PROJECTED: usize = 16;
+
+fn pack_projections(p: &[Option<cpu::Projection>]) -> Vec<f32> {
+    let mut v = vec![0.0f32; p.len() * CPU_PROJECTED];
+    for (row, p) in v.chunks_mut(CPU_PROJECTED).zip(p) {
+        if let Some(p) = p {
+            let s = &p.splat;
+            row.copy_from_slice(&[
+                s.u,
+                s.v,
+                s.a,
+                s.b,
+                s.c,
+                s.opacity,
+                s.rgb[0],
+                s.rgb[1],
+                s.rgb[2],
+                s.sigma_cut,
+                p.depth,
+                f32::from_bits(p.pixels.x0),
+                f32::from_bits(p.pixels.y0),
+                f32::from_bits(p.pixels.x1),
+                f32::from_bits(p.pixels.y1),
+                1.0,
+            ]);
+        }
+    }
+    v
+}
+
+fn unpack_projections(v: &[f32]) -> Vec<Option<cpu::Projection>> {
+    v.chunks(CPU_PROJECTED)
+        .map(|r| {
+            (r[15] == 1.0).then(|| cpu::Projection {
+                splat: cpu::Splat2d {
+                    u: r[0],
+                    v: r[1],
+                    a: r[2],
+                    b: r[3],
+                    c: r[4],
+                    opacity: r[5],
+                    rgb: [r[6], r[7], r[8]],
+                    sigma_cut: r[9],
+                },
+                depth: r[10],
+                pixels: cpu::PixelBox {
+                    x0: r[11].to_bits(),
+                    y0: r[12].to_bits(),
+                    x1: r[13].to_bits(),
+                    y1: r[14].to_bits(),
+                },
+            })
+        })
+        .collect()
+}
+
+struct HostInputs {
+    means: Vec<f32>,
+    cov6: Vec<f32>,
+    colors: Vec<f32>,
+    opacities: Vec<f32>,
+}
+
+impl HostInputs {
+    fn read<B: Backend>(i: SplatInputs<B>) -> Self {
+        Self {
+            means: read_floats::<B>(i.means),
+            cov6: read_floats::<B>(i.cov6),
+            colors: read_floats::<B>(i.colors),
+            opacities: read_floats::<B>(i.opacities),
+        }
+    }
+
+    fn scene(&self) -> cpu::Scene<'_> {
+        cpu::Scene {
+            means: &self.means,
+            cov6: &self.cov6,
+            colors: &self.colors,
+            opacities: &self.opacities,
+        }
+    }
+}
+
+/// Forward of the CPU tile renderer for any host backend.
+pub fn cpu_forward<B: Backend>(inputs: SplatInputs<B>, params: SplatParams) -> SplatState<B> {
+    let device = inputs.means.device();
+    let host = HostInputs::read(inputs);
+    let fwd = cpu::forward(&host.scene(), &params.camera, params.background);
+    let (w, h) = (params.camera.width as usize, params.camera.height as usize);
+    let n = host.opacities.len();
+    let m = fwd.bins.gaussian_from_isect.len();
+    let t = fwd.bins.tile_ranges.len();
+    let mut isects = fwd.bins.gaussian_from_isect;
+    if isects.is_empty() {
+        isects.push(0);
+    }
+    SplatState {
+        out: floats::<B>(fwd.out, &[h, w, 4], &device),
+        projected: floats::<B>(
+            pack_projections(&fwd.projections),
+            &[n, CPU_PROJECTED],
+            &device,
+        ),
+        gaussian_from_isect: ints::<B>(isects, &[m.max(1)], &device),
+        tile_ranges: ints::<B>(fwd.bins.tile_ranges.concat(), &[t, 2], &device),
+        last: ints::<B>(fwd.last, &[h, w], &device),
+    }
+}
+
+/// Backward of the CPU tile renderer for any host backend.
+pub fn cpu_backward<B: Backend>(
+    inputs: SplatInputs<B>,
+    state: SplatState<B>,
+    grad_out: FloatTensor<B>,
+    params: SplatParams,
+) -> SplatGrads<B> {
+    let device = inputs.means.device();
+    let host = HostInputs::read(inputs);
+    let n = host.opacities.len();
+    let tile_ranges: Vec<[u32; 2]> = read_ints::<B>(state.tile_ranges)
+        .chunks(2)
+        .map(|c| [c[0], c[1]])
+        .collect();
+    let m = tile_ranges.last().map_or(0, |r| r[1] as usize);
+    let mut gaussian_from_isect = read_ints::<B>(state.gaussian_from_isect);
+    gaussian_from_isect.truncate(m);
+    let fwd = cpu::Forward {
+        out: read_floats::<B>(state.out),
+        projections: unpack_projections(&read_floats::<B>(state.projected)),
+        bins: cpu::Bins {
+            gaussian_from_isect,
+            tile_ranges,
+        },
+        last: read_ints::<B>(state.last),
+    };
+    let grad_out = read_floats::<B>(grad_out);
+    let g = cpu::backward(
+        &host.scene(),
+        &params.camera,
+        params.background,
+        &fwd,
+        &grad_out,
+    );
+    SplatGrads {
+        means: floats::<B>(g.means, &[n, 3], &device),
+        cov6: floats::<B>(g.cov6, &[n, 6], &device),
+        colors: floats::<B>(g.colors, &[n, 3], &device),
+        opacities: floats::<B>(g.opacities, &[n], &device),
+    }
+}
+
+impl SplatBackend for NdArray {
+    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
+        cpu_forward::<Self>(inputs, params)
+    }
+
+    fn splat_backward(
+        inputs: SplatInputs<Self>,
+        state: SplatState<Self>,
+        grad_out: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> SplatGrads<Self> {
+        cpu_backward::<Self>(inputs, state, grad_out, params)
+    }
+}
+
+impl SplatBackend for Flex {
+    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
+        cpu_forward::<Self>(inputs, params)
+    }
+
+    fn splat_backward(
+        inputs: SplatInputs<Self>,
+        state: SplatState<Self>,
+        grad_out: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> SplatGrads<Self> {
+        cpu_backward::<Self>(inputs, state, grad_out, params)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Autodiff: the handwritten backward.
+
+#[derive(Debug)]
+struct SplatBackward;
+
+impl<B: Backend + SplatBackend> Backward<B, 4> for SplatBackward {
+    type State = (SplatInputs<B>, SplatState<B>, SplatParams);
+
+    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let grad_out = grads.consume::<B>(&ops.node);
+        let (inputs, state, params) = ops.state;
+        let g = B::splat_backward(inputs, state, grad_out, params);
+        let [means, cov6, colors, opacities] = ops.parents;
+        for (node, grad) in [
+            (means, g.means),
+            (cov6, g.cov6),
+            (colors, g.colors),
+            (opacities, g.opacities),
+        ] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, grad);
+            }
+        }
+    }
+}
+
+fn inner_inputs<B: Backend, C: CheckpointStrategy>(
+    i: SplatInputs<Autodiff<B, C>>,
+) -> SplatInputs<B> {
+    SplatInputs {
+        means: i.means.into_primitive(),
+        cov6: i.cov6.into_primitive(),
+        colors: i.colors.into_primitive(),
+        opacities: i.opacities.into_primitive(),
+    }
+}
+
+impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff<B, C> {
+    fn splat(inputs: SplatInputs<Self>, params: SplatParams) -> FloatTensor<Self> {
+        let nodes = [
+            inputs.means.node(),
+            inputs.cov6.node(),
+            inputs.colors.node(),
+            inputs.opacities.node(),
+        ];
+        match SplatBackward.prepare::<C>(nodes).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let inner = inner_inputs(inputs);
+                let state = B::splat_forward(inner.clone(), params);
+                let out = state.out.clone();
+                prep.finish((inner, state, params), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::splat_forward(inner_inputs(inputs), params).out)
+            }
+        }
+    }
+
+    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
+        let s = B::splat_forward(inner_inputs(inputs), params);
+        SplatState {
+            out: Self::from_inner(s.out),
+            projected: Self::from_inner(s.projected),
+            gaussian_from_isect: s.gaussian_from_isect,
+            tile_ranges: s.tile_ranges,
+            last: s.last,
+        }
+    }
+
+    fn splat_backward(
+        inputs: SplatInputs<Self>,
+        state: SplatState<Self>,
+        grad_out: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> SplatGrads<Self> {
+        let state = SplatState {
+            out: state.out.into_primitive(),
+            projected: state.projected.into_primitive(),
+            gaussian_from_isect: state.gaussian_from_isect,
+            tile_ranges: state.tile_ranges,
+            last: state.last,
+        };
+        let g = B::splat_backward(
+            inner_inputs(inputs),
+            state,
+            grad_out.into_primitive(),
+            params,
+        );
+        SplatGrads {
+            means: Self::from_inner(g.means),
+            cov6: Self::from_inner(g.cov6),
+            colors: Self::from_inner(g.colors),
+            opacities: Self::from_inner(g.opacities),
+        }
+    }
+}

@@ -1,0 +1,460 @@
+//! Standard 3D Gaussian splatting PLY files (the INRIA layout).
+//!
+//! One `vertex` element with float properties `x y z`, `f_dc_0..2`, `f_rest_*` (0, 9, 24 or 45
+//! of them for SH degree 0-3, stored channel-major: all R coefficients, then G, then B),
+//! `opacity` (logit), `scale_0..2` (log), `rot_0..3` (quaternion w, x, y, z, not normalised).
+//! Other properties (`nx ny nz`, ...) are ignored. Binary little-endian and ASCII bodies are
+//! read; files are written binary little-endian.
+
+use std::io::Write;
+use std::path::Path;
+
+use crate::error::{Error, Result};
+
+/// Gaussians as stored in a 3DGS PLY (host memory, row-major).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PlyGaussians {
+    /// [N, 3]
+    pub means: Vec<f32>,
+    /// [N, K, 3] SH coefficients, K = (degree + 1)^2, coefficient-major per Gaussian.
+    pub sh: Vec<f32>,
+    /// SH degree (0..=3).
+    pub sh_degree: usize,
+    /// [N] opacity logits.
+    pub opacity_logits: Vec<f32>,
+    /// [N, 3] log scales.
+    pub log_scales: Vec<f32>,
+    /// [N, 4] quaternions (w, x, y, z), as stored.
+    pub quats: Vec<f32>,
+}
+
+impl PlyGaussians {
+    /// Number of Gaussians.
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.opacity_logits.is_empty()
+    }
+
+    /// SH coefficients per channel, K.
+    pub fn sh_coeffs(&self) -> usize {
+        (self.sh_degree + 1) * (self.sh_degree + 1)
+    }
+
+    /// Opacities after the sigmoid.
+    pub fn opacities(&self) -> Vec<f32> {
+        self.opacity_logits
+            .iter()
+            .map(|&l| 1.0 / (1.0 + (-l).exp()))
+            .collect()
+    }
+
+    /// World covariances [N, 6] (xx, xy, xz, yy, yz, zz) from the normalised quaternion and
+    /// the exponentiated scales: `R diag(s)^2 R^T`. A zero quaternion gives the identity
+    /// rotation.
+    pub fn cov6(&self) -> Vec<f32> {
+        let mut out = Vec::with_capacity(self.len() * 6);
+        for i in 0..self.len() {
+            let q = &self.quats[4 * i..4 * i + 4];
+            let s = &self.log_scales[3 * i..3 * i + 3];
+            out.extend_from_slice(&cov6_from_quat_scale(
+                [q[0], q[1], q[2], q[3]],
+                [s[0].exp(), s[1].exp(), s[2].exp()],
+            ));
+        }
+        out
+    }
+}
+
+/// `R(q) diag(s)^2 R(q)^T` as (xx, xy, xz, yy, yz, zz); `q` = (w, x, y, z), normalised here.
+pub fn cov6_from_quat_scale(q: [f32; 4], s: [f32; 3]) -> [f32; 6] {
+    let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    let [w, x, y, z] = if norm > 0.0 && norm.is_finite() {
+        q.map(|v| v / norm)
+    } else {
+        [1.0, 0.0, 0.0, 0.0]
+    };
+    let r = [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ];
+    let s2 = [s[0] * s[0], s[1] * s[1], s[2] * s[2]];
+    let e = |i: usize, j: usize| (0..3).map(|k| r[i][k] * s2[k] * r[j][k]).sum::<f32>();
+    [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Format {
+    Ascii,
+    BinaryLe,
+}
+
+#[derive(Clone, Debug)]
+struct Property {
+    name: String,
+    size: usize,
+    kind: ScalarKind,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum ScalarKind {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl ScalarKind {
+    fn parse(s: &str) -> Option<(Self, usize)> {
+        Some(match s {
+            "char" | "int8" => (Self::I8, 1),
+            "uchar" | "uint8" => (Self::U8, 1),
+            "short" | "int16" => (Self::I16, 2),
+            "ushort" | "uint16" => (Self::U16, 2),
+            "int" | "int32" => (Self::I32, 4),
+            "uint" | "uint32" => (Self::U32, 4),
+            "float" | "float32" => (Self::F32, 4),
+            "double" | "float64" => (Self::F64, 8),
+            _ => return None,
+        })
+    }
+
+    fn read(self, b: &[u8]) -> f32 {
+        match self {
+            Self::I8 => b[0] as i8 as f32,
+            Self::U8 => b[0] as f32,
+            Self::I16 => i16::from_le_bytes([b[0], b[1]]) as f32,
+            Self::U16 => u16::from_le_bytes([b[0], b[1]]) as f32,
+            Self::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+            Self::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+            Self::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+            Self::F64 => {
+                f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f32
+            }
+        }
+    }
+}
+
+/// Reads a 3DGS PLY file.
+pub fn read(path: &Path) -> Result<PlyGaussians> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    parse(&bytes, &path.display().to_string())
+}
+
+/// Parses a 3DGS PLY from memory; `what` names the source in errors.
+pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
+    let err = |field: &str, why: String| Error::invalid(what, field, why);
+    let end_marker = b"end_header";
+    let header_end = bytes
+        .windows(end_marker.len())
+        .position(|w| w == end_marker)
+        .ok_or_else(|| err("header", "no `end_header` line".into()))?;
+    let mut body_start = header_end + end_marker.len();
+    if bytes.get(body_start) == Some(&b'\r') {
+        body_start += 1;
+    }
+    if bytes.get(body_start) == Some(&b'\n') {
+        body_start += 1;
+    }
+    let header = std::str::from_utf8(&bytes[..header_end])
+        .map_err(|_| err("header", "not valid text".into()))?;
+    let mut lines = header.lines();
+    if lines.next().map(str::trim) != Some("ply") {
+        return Err(err("magic", "file does not start with `ply`".into()));
+    }
+    let mut format = None;
+    let mut count = None;
+    let mut props: Vec<Property> = Vec::new();
+    let mut in_vertex = false;
+    let mut elements_before_vertex = false;
+    for line in lines {
+        let tok: Vec<&str> = line.split_whitespace().collect();
+        match tok.as_slice() {
+            ["format", "ascii", _] => format = Some(Format::Ascii),
+            ["format", "binary_little_endian", _] => format = Some(Format::BinaryLe),
+            ["format", other, ..] => {
+                return Err(err("format", format!("unsupported format `{other}`")));
+            }
+            ["element", name, n] => {
+                in_vertex = *name == "vertex";
+                if in_vertex {
+                    count = Some(
+                        n.parse::<usize>()
+                            .map_err(|_| err("element vertex", format!("bad count `{n}`")))?,
+                    );
+                } else if count.is_none() {
+                    elements_before_vertex = true;
+                }
+            }
+            ["property", "list", ..] if in_vertex => {
+                return Err(err("property", "list properties are not supported".into()));
+            }
+            ["property", ty, name] if in_vertex => {
+                let (kind, size) = ScalarKind::parse(ty)
+                    .ok_or_else(|| err(name, format!("unknown property type `{ty}`")))?;
+                props.push(Property {
+                    name: name.to_string(),
+                    size,
+                    kind,
+                });
+            }
+            _ => {}
+        }
+    }
+    if elements_before_vertex {
+        return Err(err("element", "the vertex element must come first".into()));
+    }
+    let format = format.ok_or_else(|| err("format", "missing".into()))?;
+    let n = count.ok_or_else(|| err("element vertex", "missing".into()))?;
+    let index = |name: &str| props.iter().position(|p| p.name == name);
+    let need = |name: &str| index(name).ok_or_else(|| err(name, "missing property".into()));
+    let xyz = [need("x")?, need("y")?, need("z")?];
+    let dc = [need("f_dc_0")?, need("f_dc_1")?, need("f_dc_2")?];
+    let opacity = need("opacity")?;
+    let scales = [need("scale_0")?, need("scale_1")?, need("scale_2")?];
+    let rots = [
+        need("rot_0")?,
+        need("rot_1")?,
+        need("rot_2")?,
+        need("rot_3")?,
+    ];
+    let mut rest = Vec::new();
+    while let Some(i) = index(&format!("f_rest_{}", rest.len())) {
+        rest.push(i);
+    }
+    let sh_degree = match rest.len() {
+        0 => 0,
+        9 => 1,
+        24 => 2,
+        45 => 3,
+        r => {
+            return Err(err(
+                "f_rest_*",
+                format!("{r} coefficients; expected 0, 9, 24 or 45 (SH degree 0-3)"),
+            ));
+        }
+    };
+    let rows = read_rows(&bytes[body_start..], format, &props, n, &err)?;
+    let k = (sh_degree + 1) * (sh_degree + 1);
+    let mut g = PlyGaussians {
+        sh_degree,
+        means: Vec::with_capacity(3 * n),
+        sh: Vec::with_capacity(3 * k * n),
+        opacity_logits: Vec::with_capacity(n),
+        log_scales: Vec::with_capacity(3 * n),
+        quats: Vec::with_capacity(4 * n),
+    };
+    let per = k - 1;
+    for row in rows.chunks(props.len().max(1)) {
+        g.means.extend(xyz.map(|i| row[i]));
+        g.sh.extend(dc.map(|i| row[i]));
+        for coeff in 0..per {
+            for ch in 0..3 {
+                g.sh.push(row[rest[ch * per + coeff]]);
+            }
+        }
+        g.opacity_logits.push(row[opacity]);
+        g.log_scales.extend(scales.map(|i| row[i]));
+        g.quats.extend(rots.map(|i| row[i]));
+    }
+    Ok(g)
+}
+
+fn read_rows(
+    body: &[u8],
+    format: Format,
+    props: &[Property],
+    n: usize,
+    err: &dyn Fn(&str, String) -> Error,
+) -> Result<Vec<f32>> {
+    let np = props.len();
+    let mut out = Vec::with_capacity(n * np);
+    match format {
+        Format::BinaryLe => {
+            let stride: usize = props.iter().map(|p| p.size).sum();
+            let need = stride
+                .checked_mul(n)
+                .ok_or_else(|| err("element vertex", "count too large".into()))?;
+            if body.len() < need {
+                return Err(err(
+                    "body",
+                    format!(
+                        "truncated: {n} vertices need {need} bytes, found {}",
+                        body.len()
+                    ),
+                ));
+            }
+            for r in 0..n {
+                let mut off = r * stride;
+                for p in props {
+                    out.push(p.kind.read(&body[off..off + p.size]));
+                    off += p.size;
+                }
+            }
+        }
+        Format::Ascii => {
+            let text = std::str::from_utf8(body).map_err(|_| err("body", "not text".into()))?;
+            let mut values = text.split_whitespace();
+            for r in 0..n {
+                for p in props {
+                    let tok = values.next().ok_or_else(|| {
+                        err(
+                            "body",
+                            format!("truncated at vertex {r}, property {}", p.name),
+                        )
+                    })?;
+                    let v: f32 = tok.parse().map_err(|_| {
+                        err(&p.name, format!("vertex {r}: `{tok}` is not a number"))
+                    })?;
+                    out.push(v);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Writes Gaussians as a binary little-endian 3DGS PLY (with `nx ny nz` = 0 as the INRIA
+/// code does, so every viewer accepts it). The file is written to a temporary name first and
+/// renamed, so an existing file is never left half-written.
+pub fn write(path: &Path, g: &PlyGaussians) -> Result<()> {
+    let n = g.len();
+    let k = g.sh_coeffs();
+    let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
+    header.push_str(&format!("element vertex {n}\n"));
+    let mut names: Vec<String> = [
+        "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    names.extend((0..3 * (k - 1)).map(|i| format!("f_rest_{i}")));
+    names.push("opacity".into());
+    names.extend((0..3).map(|i| format!("scale_{i}")));
+    names.extend((0..4).map(|i| format!("rot_{i}")));
+    for name in &names {
+        header.push_str(&format!("property float {name}\n"));
+    }
+    header.push_str("end_header\n");
+    let mut body = Vec::with_capacity(n * names.len() * 4);
+    let mut put = |v: f32| body.extend_from_slice(&v.to_le_bytes());
+    for i in 0..n {
+        g.means[3 * i..3 * i + 3].iter().for_each(|&v| put(v));
+        (0..3).for_each(|_| put(0.0));
+        let sh = &g.sh[3 * k * i..3 * k * (i + 1)];
+        (0..3).for_each(|ch| put(sh[ch]));
+        for ch in 0..3 {
+            for coeff in 1..k {
+                put(sh[3 * coeff + ch]);
+            }
+        }
+        put(g.opacity_logits[i]);
+        g.log_scales[3 * i..3 * i + 3].iter().for_each(|&v| put(v));
+        g.quats[4 * i..4 * i + 4].iter().for_each(|&v| put(v));
+    }
+    let tmp = path.with_extension("ply.partial");
+    let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    f.write_all(header.as_bytes())
+        .and_then(|_| f.write_all(&body))
+        .and_then(|_| f.sync_all())
+        .map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(degree: usize) -> PlyGaussians {
+        let k = (degree + 1) * (degree + 1);
+        let n = 3;
+        PlyGaussians {
+            means: (0..3 * n).map(|i| i as f32 * 0.1).collect(),
+            sh: (0..3 * k * n).map(|i| (i as f32 * 0.37).sin()).collect(),
+            sh_degree: degree,
+            opacity_logits: vec![0.5, -1.0, 2.0],
+            log_scales: (0..3 * n).map(|i| -(i as f32) * 0.2).collect(),
+            quats: vec![1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0],
+        }
+    }
+
+    #[test]
+    fn write_read_round_trip_all_degrees() {
+        let dir = std::env::temp_dir().join(format!("texavatars-ply-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for d in 0..=3 {
+            let g = sample(d);
+            let p = dir.join(format!("g{d}.ply"));
+            write(&p, &g).unwrap();
+            assert_eq!(read(&p).unwrap(), g);
+        }
+    }
+
+    #[test]
+    fn ascii_body_is_read() {
+        let text = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+            property float z\nproperty float f_dc_0\nproperty float f_dc_1\nproperty float f_dc_2\n\
+            property float opacity\nproperty float scale_0\nproperty float scale_1\n\
+            property float scale_2\nproperty float rot_0\nproperty float rot_1\n\
+            property float rot_2\nproperty float rot_3\nend_header\n1 2 3 0.1 0.2 0.3 0 0 0 0 1 0 0 0\n";
+        let g = parse(text.as_bytes(), "t.ply").unwrap();
+        assert_eq!(g.means, vec![1.0, 2.0, 3.0]);
+        assert_eq!(g.sh, vec![0.1, 0.2, 0.3]);
+        assert_eq!(g.opacities(), vec![0.5]);
+    }
+
+    #[test]
+    fn malformed_files_name_the_field() {
+        let dir = std::env::temp_dir().join(format!("texavatars-plybad-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("g.ply");
+        write(&p, &sample(1)).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let e = parse(&bytes[..bytes.len() - 10], "g.ply")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("g.ply") && e.contains("truncated"), "{e}");
+        let h = bytes.windows(10).position(|w| w == b"end_header").unwrap();
+        let text = String::from_utf8_lossy(&bytes[..h])
+            .replace("property float opacity", "property float opacityX");
+        let mut b2 = text.into_bytes();
+        b2.extend_from_slice(&bytes[h..]);
+        let e = parse(&b2, "g.ply").unwrap_err().to_string();
+        assert!(e.contains("opacity"), "{e}");
+        let e = parse(b"not a ply", "x.ply").unwrap_err().to_string();
+        assert!(e.contains("x.ply"), "{e}");
+        let e = read(&dir.join("absent.ply")).unwrap_err().to_string();
+        assert!(e.contains("absent.ply"), "{e}");
+    }
+
+    #[test]
+    fn covariance_of_rotated_scales() {
+        // 90 degrees about z swaps the x and y variances.
+        let h = std::f32::consts::FRAC_1_SQRT_2;
+        let c = cov6_from_quat_scale([h, 0.0, 0.0, h], [1.0, 2.0, 3.0]);
+        let want = [4.0, 0.0, 0.0, 1.0, 0.0, 9.0];
+        for (a, b) in c.iter().zip(want) {
+            assert!((a - b).abs() < 1e-5, "{c:?}");
+        }
+    }
+}

@@ -1,0 +1,271 @@
+//! The CPU tile renderer (ndarray and flex backends) and the dense reference against the
+//! fixtures of an independent reference, against each other on random scenes, against
+//! central finite differences, and under hostile inputs.
+
+mod common;
+
+use burn::tensor::Device;
+use common::{Outcome, Scene, assert_close, fixture, random_scene, run};
+use texavatars::splat::cpu;
+use texavatars::splat::{render, render_reference};
+
+#[allow(deprecated)]
+fn ndarray() -> Device {
+    Device::ndarray().autodiff()
+}
+
+fn fused(scene: &Scene, device: &Device) -> Outcome {
+    run(
+        scene,
+        device,
+        |g, p| render(g, p).expect("valid inputs"),
+        None,
+    )
+}
+
+fn reference(scene: &Scene, device: &Device) -> Outcome {
+    run(
+        scene,
+        device,
+        |g, p| render_reference(g, p).expect("valid inputs"),
+        None,
+    )
+}
+
+#[test]
+fn fixtures_cpu_and_reference() {
+    for name in ["small", "medium", "edge"] {
+        let Some(scene) = fixture(name) else {
+            eprintln!("fixtures absent: skipping {name}");
+            continue;
+        };
+        let want = scene.expected.as_ref().unwrap().outcome();
+        let got = fused(&scene, &ndarray());
+        println!(
+            "{}",
+            assert_close(&format!("{name} cpu/ndarray"), &got, &want, 1e-4, 0.99)
+        );
+        let got = fused(&scene, &Device::flex().autodiff());
+        println!(
+            "{}",
+            assert_close(&format!("{name} cpu/flex"), &got, &want, 1e-4, 0.99)
+        );
+        if name != "medium" || std::env::var("TEXAVATARS_FULL").is_ok() {
+            let got = reference(&scene, &ndarray());
+            println!(
+                "{}",
+                assert_close(&format!("{name} reference"), &got, &want, 1e-4, 0.99)
+            );
+        }
+    }
+}
+
+#[test]
+fn cpu_matches_reference_on_random_scenes() {
+    for (n, w, h, seed) in [(50, 40, 30, 1), (200, 37, 53, 2), (120, 64, 64, 3)] {
+        let scene = random_scene(n, w, h, seed);
+        let want = reference(&scene, &ndarray());
+        let got = fused(&scene, &ndarray());
+        println!("{}", assert_close(&scene.name, &got, &want, 1e-4, 0.99));
+    }
+}
+
+#[test]
+fn transmittance_gradient_matches_reference() {
+    let scene = random_scene(80, 33, 29, 11);
+    let (w, h) = scene.size();
+    let tw: Vec<f32> = (0..w * h)
+        .map(|i| ((i * 7919) % 13) as f32 / 6.0 - 1.0)
+        .collect();
+    let device = ndarray();
+    let want = run(
+        &scene,
+        &device,
+        |g, p| render_reference(g, p).unwrap(),
+        Some(&tw),
+    );
+    let got = run(&scene, &device, |g, p| render(g, p).unwrap(), Some(&tw));
+    println!("{}", assert_close("with dL/dT", &got, &want, 1e-4, 0.99));
+}
+
+/// A smooth scene for finite differences: large Gaussians whose 1/255 cut-off lies outside
+/// the image, opacities below the 0.99 clamp, so the loss is smooth in every input.
+fn smooth_scene() -> Scene {
+    let mut s = random_scene(4, 12, 10, 5);
+    s.params.background = [0.3, 0.6, 0.1];
+    for i in 0..4 {
+        s.means[3 * i] = 0.3 * (i as f32 - 1.5);
+        s.means[3 * i + 1] = 0.2 * ((i % 2) as f32 - 0.5);
+        s.means[3 * i + 2] = 3.0 + 0.5 * i as f32;
+        s.cov6[6 * i..6 * i + 6].copy_from_slice(&[1.0, 0.1, 0.05, 0.8, -0.1, 1.2]);
+        s.opacities[i] = 0.3 + 0.1 * i as f32;
+    }
+    s
+}
+
+fn cpu_loss(s: &Scene) -> f64 {
+    let scene = cpu::Scene {
+        means: &s.means,
+        cov6: &s.cov6,
+        colors: &s.colors,
+        opacities: &s.opacities,
+    };
+    let fwd = cpu::forward(&scene, &s.params.camera, s.params.background);
+    let (w, h) = s.size();
+    (0..w * h)
+        .map(|p| {
+            (0..3)
+                .map(|c| fwd.out[4 * p + c] as f64 * s.grad_weights[3 * p + c] as f64)
+                .sum::<f64>()
+                + 0.5 * fwd.out[4 * p + 3] as f64
+        })
+        .sum()
+}
+
+#[test]
+fn cpu_gradients_match_finite_differences() {
+    let s = smooth_scene();
+    let (w, h) = s.size();
+    let scene = cpu::Scene {
+        means: &s.means,
+        cov6: &s.cov6,
+        colors: &s.colors,
+        opacities: &s.opacities,
+    };
+    let fwd = cpu::forward(&scene, &s.params.camera, s.params.background);
+    let mut grad_out = vec![0.0f32; w * h * 4];
+    for p in 0..w * h {
+        grad_out[4 * p..4 * p + 3].copy_from_slice(&s.grad_weights[3 * p..3 * p + 3]);
+        grad_out[4 * p + 3] = 0.5;
+    }
+    let g = cpu::backward(
+        &scene,
+        &s.params.camera,
+        s.params.background,
+        &fwd,
+        &grad_out,
+    );
+    type Field = fn(&mut Scene) -> &mut Vec<f32>;
+    let fields: [(&str, Field, &Vec<f32>, f32); 4] = [
+        ("means", |s| &mut s.means, &g.means, 1e-3),
+        ("cov6", |s| &mut s.cov6, &g.cov6, 1e-3),
+        ("colors", |s| &mut s.colors, &g.colors, 1e-2),
+        ("opacities", |s| &mut s.opacities, &g.opacities, 1e-3),
+    ];
+    for (name, field, analytic, h) in fields {
+        for i in 0..analytic.len() {
+            let mut plus = s.clone();
+            field(&mut plus)[i] += h;
+            let mut minus = s.clone();
+            field(&mut minus)[i] -= h;
+            let fd = (cpu_loss(&plus) - cpu_loss(&minus)) / (2.0 * h as f64);
+            let a = analytic[i] as f64;
+            let tol = 2e-2 * fd.abs().max(a.abs()) + 2e-3;
+            assert!(
+                (fd - a).abs() <= tol,
+                "{name}[{i}]: finite difference {fd} vs analytic {a}"
+            );
+        }
+    }
+}
+
+fn assert_finite(label: &str, o: &Outcome) {
+    for (name, v) in [
+        ("image", &o.image),
+        ("transmittance", &o.transmittance),
+        ("grad means", &o.grad_means),
+        ("grad cov6", &o.grad_cov6),
+        ("grad colors", &o.grad_colors),
+        ("grad opacities", &o.grad_opacities),
+    ] {
+        assert!(
+            v.iter().all(|x| x.is_finite()),
+            "{label}: non-finite {name}"
+        );
+    }
+}
+
+/// A scene of hostile Gaussians: NaN/Inf values, zero and indefinite covariances, behind the
+/// camera, at the near plane, needle-thin, huge, transparent, opaque.
+pub fn hostile_scene(w: u32, h: u32) -> Scene {
+    let mut s = random_scene(24, w, h, 9);
+    let nan = f32::NAN;
+    let inf = f32::INFINITY;
+    let cases: [([f32; 3], [f32; 6], f32); 14] = [
+        ([nan, 0.0, 3.0], [0.01, 0.0, 0.0, 0.01, 0.0, 0.01], 0.5),
+        ([0.0, 0.0, 3.0], [nan, 0.0, 0.0, 0.01, 0.0, 0.01], 0.5),
+        ([0.0, 0.0, 3.0], [0.01, 0.0, 0.0, 0.01, 0.0, 0.01], nan),
+        ([inf, 0.0, 3.0], [0.01, 0.0, 0.0, 0.01, 0.0, 0.01], 0.5),
+        ([0.0, 0.0, 3.0], [inf, 0.0, 0.0, 0.01, 0.0, 0.01], 0.5),
+        ([0.0, 0.1, 3.0], [0.0; 6], 0.5),
+        ([0.1, 0.0, 3.0], [0.01, 0.0, 0.0, -0.02, 0.0, 0.01], 0.5),
+        ([0.0, 0.0, -2.0], [0.01, 0.0, 0.0, 0.01, 0.0, 0.01], 0.9),
+        ([0.0, 0.0, 0.0], [0.01, 0.0, 0.0, 0.01, 0.0, 0.01], 0.9),
+        ([0.0, 0.0, 0.01], [0.01, 0.0, 0.0, 0.01, 0.0, 0.01], 0.9),
+        (
+            [0.0, 0.0, 0.0100001],
+            [1e-8, 0.0, 0.0, 1e-8, 0.0, 1e-8],
+            0.9,
+        ),
+        ([0.2, -0.1, 3.0], [1e-12, 0.0, 0.0, 1.0, 0.0, 1e-12], 0.999),
+        ([0.0, 0.0, 4.0], [1e6, 0.0, 0.0, 1e6, 0.0, 1e6], 1.0),
+        ([0.0, 0.0, 2.0], [0.05, 0.0, 0.0, 0.05, 0.0, 0.05], 1e-6),
+    ];
+    for (i, (m, c, o)) in cases.iter().enumerate() {
+        s.means[3 * i..3 * i + 3].copy_from_slice(m);
+        s.cov6[6 * i..6 * i + 6].copy_from_slice(c);
+        s.opacities[i] = *o;
+    }
+    s
+}
+
+#[test]
+fn hostile_inputs_give_finite_outputs_and_gradients() {
+    for (w, h) in [(1, 1), (17, 9), (16, 16), (33, 47)] {
+        let s = hostile_scene(w, h);
+        assert_finite(&format!("cpu {w}x{h}"), &fused(&s, &ndarray()));
+        assert_finite(&format!("reference {w}x{h}"), &reference(&s, &ndarray()));
+    }
+}
+
+#[test]
+fn empty_scene_renders_background() {
+    let mut s = random_scene(0, 20, 7, 1);
+    s.params.background = [0.25, 0.5, 0.75];
+    let o = fused(&s, &ndarray());
+    assert!(o.image.chunks(3).all(|p| p == [0.25, 0.5, 0.75]));
+    assert!(o.transmittance.iter().all(|&t| t == 1.0));
+    // The reference of an empty scene is a constant (no graph): forward only.
+    let g = s.gaussians(&ndarray().inner());
+    let r = render_reference(&g, &s.params).unwrap();
+    let image: Vec<f32> = r.image.into_data().iter::<f32>().collect();
+    assert!(image.chunks(3).all(|p| p == [0.25, 0.5, 0.75]));
+    // All culled (behind the camera) but N > 0: backward works and gives zeros.
+    let mut s = random_scene(5, 20, 7, 1);
+    for i in 0..5 {
+        s.means[3 * i + 2] = -1.0;
+    }
+    for o in [fused(&s, &ndarray()), reference(&s, &ndarray())] {
+        assert!(o.transmittance.iter().all(|&t| t == 1.0));
+        assert!(o.grad_means.iter().all(|&g| g == 0.0));
+    }
+}
+
+#[test]
+fn hundred_thousand_gaussians() {
+    let s = random_scene(100_000, 64, 48, 4);
+    let o = fused(&s, &ndarray());
+    assert_finite("100k", &o);
+    // Something was drawn: most of the view is covered.
+    let covered = o.transmittance.iter().filter(|&&t| t < 0.5).count();
+    assert!(covered > o.transmittance.len() / 2, "covered {covered}");
+}
+
+#[test]
+fn bad_shapes_are_reported() {
+    let s = random_scene(3, 8, 8, 1);
+    let mut g = s.gaussians(&ndarray().inner());
+    g.cov6 = g.cov6.narrow(1, 0, 5);
+    let e = render(&g, &s.params).unwrap_err().to_string();
+    assert!(e.contains("cov6"), "{e}");
+}
