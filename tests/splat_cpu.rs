@@ -153,13 +153,13 @@ fn cpu_gradients_match_finite_differences() {
         ("opacities", |s| &mut s.opacities, &g.opacities, 1e-3),
     ];
     for (name, field, analytic, h) in fields {
-        for i in 0..analytic.len() {
+        for (i, &a) in analytic.iter().enumerate() {
             let mut plus = s.clone();
             field(&mut plus)[i] += h;
             let mut minus = s.clone();
             field(&mut minus)[i] -= h;
             let fd = (cpu_loss(&plus) - cpu_loss(&minus)) / (2.0 * h as f64);
-            let a = analytic[i] as f64;
+            let a = a as f64;
             let tol = 2e-2 * fd.abs().max(a.abs()) + 2e-3;
             assert!(
                 (fd - a).abs() <= tol,

@@ -16,12 +16,13 @@ use burn::backend::autodiff::{
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
-    AutodiffBackend, Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
+    AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata,
+    backend_extension,
 };
 use burn::tensor::{Shape, TensorData};
 
 use crate::camera::Camera;
-use crate::splat::cpu;
+use crate::splat::{cpu, gpu};
 
 /// Host-side parameters of one render: the camera and the background colour.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -74,7 +75,7 @@ pub struct SplatGrads<B: Backend> {
 }
 
 /// Backends that can render Gaussians with the fused tile rasterizer.
-#[backend_extension(NdArray, Flex, Autodiff)]
+#[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait SplatBackend: Backend {
     /// Differentiable render: returns [H, W, 4] (RGB, final transmittance).
     fn splat(
@@ -304,6 +305,60 @@ impl SplatBackend for Flex {
         params: SplatParams,
     ) -> SplatGrads<Self> {
         cpu_backward::<Self>(inputs, state, grad_out, params)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// cubecl (wgpu): the CubeCL kernels of `texavatars-kernels`.
+
+impl SplatBackend for Cube {
+    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
+        let f = gpu::forward(
+            inputs.means,
+            inputs.cov6,
+            inputs.colors,
+            inputs.opacities,
+            &params.camera,
+            params.background,
+        );
+        SplatState {
+            out: f.out,
+            projected: f.projected,
+            gaussian_from_isect: f.isect_ids,
+            tile_ranges: f.tile_ranges,
+            last: f.last,
+        }
+    }
+
+    fn splat_backward(
+        inputs: SplatInputs<Self>,
+        state: SplatState<Self>,
+        grad_out: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> SplatGrads<Self> {
+        let fwd = gpu::GpuForward {
+            out: state.out,
+            projected: state.projected,
+            isect_ids: state.gaussian_from_isect,
+            tile_ranges: state.tile_ranges,
+            last: state.last,
+        };
+        let [means, cov6, colors, opacities] = gpu::backward(
+            inputs.means,
+            inputs.cov6,
+            inputs.colors,
+            inputs.opacities,
+            &params.camera,
+            params.background,
+            &fwd,
+            grad_out,
+        );
+        SplatGrads {
+            means,
+            cov6,
+            colors,
+            opacities,
+        }
     }
 }
 

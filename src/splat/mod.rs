@@ -12,7 +12,7 @@
 pub mod backend;
 pub mod cpu;
 pub mod demo;
-// pub mod gpu; (being written)
+pub mod gpu;
 pub mod ply;
 pub mod reference;
 pub mod sh;

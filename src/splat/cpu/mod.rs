@@ -178,7 +178,7 @@ fn alpha_at(s: &Splat2d, px: f32, py: f32) -> Option<Alpha> {
     let dx = px - s.u;
     let dy = py - s.v;
     let sigma = 0.5 * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-    if !(sigma >= 0.0) || sigma > s.sigma_cut + SIGMA_CUT_SLACK {
+    if sigma.is_nan() || sigma < 0.0 || sigma > s.sigma_cut + SIGMA_CUT_SLACK {
         return None;
     }
     let g = (-sigma).exp();
@@ -252,8 +252,8 @@ fn rasterize_tile(
                     continue;
                 }
                 let w = a.alpha * trans[i];
-                for c in 0..3 {
-                    color[i][c] += w * s.rgb[c];
+                for (acc, c) in color[i].iter_mut().zip(s.rgb) {
+                    *acc += w * c;
                 }
                 trans[i] = next;
                 last[i] = k - start + 1;
@@ -380,8 +380,8 @@ fn rasterize_tile_backward(
                 let t_i = trans[i] / one_minus;
                 let gc = g[0] * s.rgb[0] + g[1] * s.rgb[1] + g[2] * s.rgb[2];
                 let w = a.alpha * t_i;
-                for c in 0..3 {
-                    acc.rgb[c] += g[c] * w;
+                for (acc, gc) in acc.rgb.iter_mut().zip(g) {
+                    *acc += gc * w;
                 }
                 let d_alpha = t_i * gc - after[i] / one_minus;
                 after[i] += gc * w;

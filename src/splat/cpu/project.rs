@@ -2,6 +2,9 @@
 //!
 //! Conventions: `shared/fixtures/splat/README.md` and [`crate::splat::constants`].
 
+// Small fixed-size matrix algebra reads best with explicit indices.
+#![allow(clippy::needless_range_loop)]
+
 use crate::camera::Camera;
 use crate::splat::constants::{ALPHA_MIN, FOV_MARGIN, LOW_PASS, MIN_DET, NEAR_PLANE, TILE_SIZE};
 
@@ -205,17 +208,18 @@ pub fn project(
     opacity: f32,
 ) -> Option<Projection> {
     let finite = mean.iter().chain(cov6).chain(rgb).all(|v| v.is_finite());
-    if !finite || !opacity.is_finite() || !(opacity >= ALPHA_MIN) {
+    // Written so that NaN fails every test.
+    if !finite || !opacity.is_finite() || opacity < ALPHA_MIN {
         return None;
     }
     let e = ewa(cam, mean, cov6);
     let z = e.t[2];
-    if !(z > NEAR_PLANE) {
+    if z.is_nan() || z <= NEAR_PLANE {
         return None;
     }
     let (sxx, sxy, syy) = cov2d(cam, &e);
     let det = sxx * syy - sxy * sxy;
-    if !(det > MIN_DET) || !det.is_finite() {
+    if !det.is_finite() || det <= MIN_DET {
         return None;
     }
     let inv = 1.0 / det;
@@ -351,10 +355,9 @@ pub fn project_backward(
     ];
     // G_J = 2 G_S J M (both symmetric).
     let mut gj = [[0.0f32; 3]; 2];
-    for i in 0..2 {
-        for k in 0..3 {
-            gj[i][k] =
-                2.0 * (gsj[i][0] * e.m[0][k] + gsj[i][1] * e.m[1][k] + gsj[i][2] * e.m[2][k]);
+    for (gj_i, gsj_i) in gj.iter_mut().zip(&gsj) {
+        for (k, v) in gj_i.iter_mut().enumerate() {
+            *v = 2.0 * (gsj_i[0] * e.m[0][k] + gsj_i[1] * e.m[1][k] + gsj_i[2] * e.m[2][k]);
         }
     }
     let (x, y) = (e.t[0], e.t[1]);

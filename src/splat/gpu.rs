@@ -1,0 +1,850 @@
+//! GPU implementation of the splat operator on burn's cubecl backend (wgpu and the other
+//! cubecl runtimes).
+//!
+//! The host side of the kernels in [`texavatars_kernels::splat`]: it allocates the buffers,
+//! launches the kernels in order and wraps the results as [`CubeTensor`]s. Everything stays
+//! on the device except one 4-byte read of the intersection count (to size the intersection
+//! buffers).
+//!
+//! Forward: project → depth radix sort → tile counts in depth order → exclusive scan →
+//! emit `(tile, Gaussian)` intersections → stable radix sort by tile → tile ranges →
+//! per-tile rasterization. Backward: per-tile reverse rasterization accumulating
+//! screen-space gradients (float atomics, or per-intersection slots and a deterministic
+//! per-Gaussian sum when the device has no float atomics) → per-Gaussian projection
+//! backward.
+//!
+//! Conventions: see `shared/fixtures/splat/README.md` and the kernel module docs. Float inputs
+//! may be non-contiguous or of another float dtype: they are made contiguous `f32` first.
+//! Integer outputs use `DType::I32` (the cube backends' default int dtype); their values are
+//! non-negative and written as `u32` bit patterns, which agree with `i32` below `2^31`.
+
+use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeDevice;
+use burn_cubecl::cubecl::client::Client;
+use burn_cubecl::cubecl::features::AtomicUsage;
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::server::Handle;
+use burn_cubecl::cubecl::{CubeCount, CubeDim, calculate_cube_count_elemwise};
+use burn_cubecl::kernel::{cast, into_contiguous};
+use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::tensor::CubeTensor;
+use texavatars_kernels::splat::bwd::project::project_backward;
+use texavatars_kernels::splat::bwd::rasterize::rasterize_backward;
+use texavatars_kernels::splat::bwd::sum_slots::sum_slots;
+use texavatars_kernels::splat::camera::{CAMERA_LEN, pack_camera};
+use texavatars_kernels::splat::constants::{GRAD2D_STRIDE, PROJECTED_STRIDE, TILE_SIZE};
+use texavatars_kernels::splat::emit_intersections::emit_intersections;
+use texavatars_kernels::splat::fill::fill_u32;
+use texavatars_kernels::splat::gather::gather_u32;
+use texavatars_kernels::splat::iota::iota_u32;
+use texavatars_kernels::splat::project::project;
+use texavatars_kernels::splat::radix_sort::histogram::radix_histogram;
+use texavatars_kernels::splat::radix_sort::scatter::radix_scatter;
+use texavatars_kernels::splat::radix_sort::{
+    RADIX_BITS, RADIX_BLOCK, RADIX_BUCKETS, RADIX_THREADS,
+};
+use texavatars_kernels::splat::rasterize::rasterize;
+use texavatars_kernels::splat::scan::add_block_offsets::scan_add_block_offsets;
+use texavatars_kernels::splat::scan::blocks::scan_blocks;
+use texavatars_kernels::splat::scan::{SCAN_BLOCK, SCAN_THREADS};
+use texavatars_kernels::splat::tile_ranges::segment_ranges;
+
+use crate::camera::Camera;
+
+/// Threads per workgroup of the one-thread-per-element kernels.
+const ELEMENTWISE_THREADS: u32 = 256;
+
+/// Result of [`forward`]: the image and everything [`backward`] needs.
+#[derive(Clone, Debug)]
+pub struct GpuForward {
+    /// `[H, W, 4]` f32: RGB (background included) in channels 0..3, final transmittance in
+    /// channel 3.
+    pub out: CubeTensor,
+    /// `[N, 8]` f32 per-Gaussian projection: `u, v, conic a, conic b, conic c, depth z,
+    /// opacity, tiles touched` (all zero for culled Gaussians, whose tile count is 0).
+    pub projected: CubeTensor,
+    /// `[M]` int: Gaussian index of each tile intersection, tile-major, ascending depth
+    /// (ties by Gaussian index) within a tile. `[1]` holding `0` when `M = 0`.
+    pub isect_ids: CubeTensor,
+    /// `[T, 2]` int: `[start, end)` into `isect_ids` per tile (row-major tiles of
+    /// `TILE_SIZE` pixels; `T = ceil(W / 16) * ceil(H / 16)`).
+    pub tile_ranges: CubeTensor,
+    /// `[H, W]` int: per pixel, the end (exclusive, relative to its tile's range start) of the
+    /// intersections the forward pass composited.
+    pub last: CubeTensor,
+}
+
+/// Knobs of the GPU pass that do not change its result (beyond float summation order).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct GpuOptions {
+    /// Accumulate the backward's per-Gaussian gradients with `Atomic<f32>` adds when the
+    /// device supports them. `false` forces the deterministic per-intersection-slot path
+    /// (used on devices without float atomics).
+    pub allow_float_atomics: bool,
+}
+
+impl Default for GpuOptions {
+    fn default() -> Self {
+        Self {
+            allow_float_atomics: true,
+        }
+    }
+}
+
+/// How [`backward_with_options`] accumulates per-Gaussian gradients on a device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Accumulation {
+    /// One float atomic add per contributing pixel and gradient entry.
+    Atomics,
+    /// Per-intersection slots and a deterministic per-Gaussian sum (no float atomics).
+    Slots,
+}
+
+impl GpuOptions {
+    /// The accumulation these options select on `client`'s device.
+    pub fn accumulation(&self, client: &Client) -> Accumulation {
+        if self.allow_float_atomics && float_atomics_supported(client) {
+            Accumulation::Atomics
+        } else {
+            Accumulation::Slots
+        }
+    }
+}
+
+/// Whether `client`'s device can `fetch_add` on `Atomic<f32>` in global memory.
+pub fn float_atomics_supported(client: &Client) -> bool {
+    let ty = Type::atomic(f32::elem_type_native());
+    client
+        .properties()
+        .atomic_type_usage(ty)
+        .contains(AtomicUsage::Add)
+}
+
+/// Renders `N` Gaussians with `camera` over `background`.
+///
+/// # Shapes
+/// - `means`: `[N, 3]`, `cov6`: `[N, 6]` (`xx, xy, xz, yy, yz, zz`), `colors`: `[N, 3]`,
+///   `opacities`: `[N]` (after the sigmoid). All on the same device.
+///
+/// # Panics
+/// On mismatched shapes or an empty image, or when the Gaussians touch more than
+/// `2^31 - 1` tiles in total.
+pub fn forward(
+    means: CubeTensor,
+    cov6: CubeTensor,
+    colors: CubeTensor,
+    opacities: CubeTensor,
+    camera: &Camera,
+    background: [f32; 3],
+) -> GpuForward {
+    let ctx = Ctx::new(&means);
+    let means = ctx.float_input(means);
+    let cov6 = ctx.float_input(cov6);
+    let colors = ctx.float_input(colors);
+    let opacities = ctx.float_input(opacities);
+    let n = check_shapes(&means, &cov6, &colors, &opacities);
+    let frame = Frame::new(camera);
+    let cam = ctx.camera(camera, background);
+
+    let projected = ctx.empty(n * PROJECTED_STRIDE as usize);
+    let mut isects = 0usize;
+    let mut tile_keys = None;
+    let mut gaussian_from_isect = None;
+    if n > 0 {
+        let tile_rects = ctx.empty(n * 4);
+        let tile_counts = ctx.empty(n);
+        let depth_keys = ctx.empty(n);
+        let (count, dim) = ctx.elementwise(n);
+        // SAFETY: every buffer holds the lengths passed; the kernel bounds-checks `n`.
+        unsafe {
+            project::launch_unchecked(
+                &ctx.client,
+                count,
+                dim,
+                arg(&means.handle, n * 3),
+                arg(&cov6.handle, n * 6),
+                arg(&colors.handle, n * 3),
+                arg(&opacities.handle, n),
+                arg(&cam, CAMERA_LEN),
+                arg(&projected, n * PROJECTED_STRIDE as usize),
+                arg(&tile_rects, n * 4),
+                arg(&tile_counts, n),
+                arg(&depth_keys, n),
+                n as u32,
+                frame.width,
+                frame.height,
+            );
+        }
+
+        // The scan below counts in u32; the outputs index in i32. Only scenes whose
+        // worst case could overflow pay for an exact host-side check.
+        if n as u64 * frame.num_tiles() as u64 > i32::MAX as u64 {
+            let total: u64 = ctx
+                .read_words(&tile_counts, n)
+                .iter()
+                .map(|&c| c as u64)
+                .sum();
+            assert!(
+                total <= i32::MAX as u64,
+                "{total} tile intersections exceed the supported 2^31 - 1"
+            );
+        }
+        let order = ctx.iota(n);
+        let (_, gaussian_from_depth_rank) = ctx.radix_sort(&depth_keys, &order, n, u32::BITS);
+        let counts_by_depth = ctx.gather(&tile_counts, &gaussian_from_depth_rank, n);
+        let (isect_offsets, total) = ctx.exclusive_scan(&counts_by_depth, n);
+        isects = ctx.read_u32(&total) as usize;
+
+        if isects > 0 {
+            let keys = ctx.empty(isects);
+            let gaussians = ctx.empty(isects);
+            let (count, dim) = ctx.elementwise(n);
+            // SAFETY: the offsets and counts sum to `isects`, the length of both outputs.
+            unsafe {
+                emit_intersections::launch_unchecked(
+                    &ctx.client,
+                    count,
+                    dim,
+                    arg(&gaussian_from_depth_rank, n),
+                    arg(&isect_offsets, n),
+                    arg(&tile_rects, n * 4),
+                    arg(&tile_counts, n),
+                    arg(&keys, isects),
+                    arg(&gaussians, isects),
+                    n as u32,
+                    frame.tiles_x,
+                );
+            }
+            let tile_bits = bit_length(frame.num_tiles() as u32 - 1);
+            let (keys, gaussians) = ctx.radix_sort(&keys, &gaussians, isects, tile_bits);
+            tile_keys = Some(keys);
+            gaussian_from_isect = Some(gaussians);
+        }
+    }
+
+    let tile_ranges = ctx.zeros(frame.num_tiles() * 2);
+    if let Some(keys) = &tile_keys {
+        ctx.segment_ranges(keys, &tile_ranges, isects);
+    }
+    let isect_len = isects.max(1);
+    let gaussian_from_isect = gaussian_from_isect.unwrap_or_else(|| ctx.zeros(1));
+
+    let pixels = frame.num_pixels();
+    let out = ctx.empty(pixels * 4);
+    let last = ctx.empty(pixels);
+    // SAFETY: one workgroup per tile; pixels outside the image are masked in the kernel.
+    unsafe {
+        rasterize::launch_unchecked(
+            &ctx.client,
+            frame.tile_grid(),
+            frame.tile_dim(),
+            arg(&projected, n * PROJECTED_STRIDE as usize),
+            arg(&ctx.nonempty(&colors.handle), (n * 3).max(1)),
+            arg(&gaussian_from_isect, isect_len),
+            arg(&tile_ranges, frame.num_tiles() * 2),
+            arg(&cam, CAMERA_LEN),
+            arg(&out, pixels * 4),
+            arg(&last, pixels),
+            frame.width,
+            frame.height,
+            frame.tiles_x,
+        );
+    }
+
+    let (h, w) = (frame.height as usize, frame.width as usize);
+    GpuForward {
+        out: ctx.tensor(out, [h, w, 4], DType::F32),
+        projected: ctx.tensor(projected, [n, PROJECTED_STRIDE as usize], DType::F32),
+        isect_ids: ctx.tensor(gaussian_from_isect, [isect_len], DType::I32),
+        tile_ranges: ctx.tensor(tile_ranges, [frame.num_tiles(), 2], DType::I32),
+        last: ctx.tensor(last, [h, w], DType::I32),
+    }
+}
+
+/// Gradients of a loss with respect to the inputs of [`forward`], given the loss gradient
+/// `grad_out` (`[H, W, 4]`: dL/dRGB and dL/dT) of its output. Uses float atomics when the
+/// device has them; see [`backward_with_options`].
+///
+/// Returns the gradients for `[means [N, 3], cov6 [N, 6], colors [N, 3], opacities [N]]`.
+/// Culled Gaussians get zeros.
+#[allow(clippy::too_many_arguments)]
+pub fn backward(
+    means: CubeTensor,
+    cov6: CubeTensor,
+    colors: CubeTensor,
+    opacities: CubeTensor,
+    camera: &Camera,
+    background: [f32; 3],
+    fwd: &GpuForward,
+    grad_out: CubeTensor,
+) -> [CubeTensor; 4] {
+    backward_with_options(
+        means,
+        cov6,
+        colors,
+        opacities,
+        camera,
+        background,
+        fwd,
+        grad_out,
+        GpuOptions::default(),
+    )
+}
+
+/// [`backward`] with explicit [`GpuOptions`].
+///
+/// # Panics
+/// On mismatched shapes, or, on the slot path, above `(2^32 - 1) / 9` intersections.
+#[allow(clippy::too_many_arguments)]
+pub fn backward_with_options(
+    means: CubeTensor,
+    cov6: CubeTensor,
+    colors: CubeTensor,
+    opacities: CubeTensor,
+    camera: &Camera,
+    background: [f32; 3],
+    fwd: &GpuForward,
+    grad_out: CubeTensor,
+    options: GpuOptions,
+) -> [CubeTensor; 4] {
+    let ctx = Ctx::new(&means);
+    let means = ctx.float_input(means);
+    let cov6 = ctx.float_input(cov6);
+    let colors = ctx.float_input(colors);
+    let opacities = ctx.float_input(opacities);
+    let n = check_shapes(&means, &cov6, &colors, &opacities);
+    let frame = Frame::new(camera);
+    let (h, w) = (frame.height as usize, frame.width as usize);
+    let grad_out = ctx.float_input(grad_out);
+    assert_eq!(
+        grad_out.meta.shape().as_slice(),
+        &[h, w, 4],
+        "grad_out must be [H, W, 4]"
+    );
+    if n == 0 {
+        return [
+            ctx.empty_tensor([0, 3]),
+            ctx.empty_tensor([0, 6]),
+            ctx.empty_tensor([0, 3]),
+            ctx.empty_tensor([0]),
+        ];
+    }
+    let cam = ctx.camera(camera, background);
+    let projected = into_contiguous(fwd.projected.clone());
+    let out = into_contiguous(fwd.out.clone());
+    let last = into_contiguous(fwd.last.clone());
+    let tile_ranges = into_contiguous(fwd.tile_ranges.clone());
+    let isect_ids = into_contiguous(fwd.isect_ids.clone());
+    // With M = 0 the buffer is a one-entry dummy holding Gaussian 0, which no tile range
+    // reaches: its slot stays zero, so treating it as an intersection changes nothing.
+    let isect_len = isect_ids.meta.shape().num_elements();
+    let pixels = frame.num_pixels();
+    let grad_len = n * GRAD2D_STRIDE as usize;
+
+    let accumulation = options.accumulation(&ctx.client);
+    let float_atomics = accumulation != Accumulation::Slots;
+    let grad2d = ctx.zeros(grad_len);
+    assert!(
+        float_atomics || isect_len * (GRAD2D_STRIDE as usize) <= u32::MAX as usize,
+        "{isect_len} intersections exceed the gradient slots' u32 indexing"
+    );
+    let slots = if float_atomics {
+        ctx.zeros(1)
+    } else {
+        ctx.zeros(isect_len * GRAD2D_STRIDE as usize)
+    };
+    let (grad2d_len, slots_len) = if float_atomics {
+        (grad_len, 1)
+    } else {
+        (1, isect_len * GRAD2D_STRIDE as usize)
+    };
+    let dummy = ctx.zeros(1);
+    // SAFETY: one workgroup per tile; all buffers hold the lengths passed.
+    unsafe {
+        rasterize_backward::launch_unchecked(
+            &ctx.client,
+            frame.tile_grid(),
+            frame.tile_dim(),
+            arg(&projected.handle, n * PROJECTED_STRIDE as usize),
+            arg(&colors.handle, n * 3),
+            arg(&isect_ids.handle, isect_len),
+            arg(&tile_ranges.handle, frame.num_tiles() * 2),
+            arg(&cam, CAMERA_LEN),
+            arg(&out.handle, pixels * 4),
+            arg(&last.handle, pixels),
+            arg(&grad_out.handle, pixels * 4),
+            arg(if float_atomics { &grad2d } else { &dummy }, grad2d_len),
+            arg(&slots, slots_len),
+            frame.width,
+            frame.height,
+            frame.tiles_x,
+            float_atomics,
+        );
+    }
+
+    if !float_atomics {
+        let order = ctx.iota(isect_len);
+        let bits = bit_length(n as u32 - 1);
+        let (gaussian_keys, isect_from_gaussian_rank) =
+            ctx.radix_sort(&isect_ids.handle, &order, isect_len, bits);
+        let gaussian_ranges = ctx.zeros(n * 2);
+        ctx.segment_ranges(&gaussian_keys, &gaussian_ranges, isect_len);
+        let (count, dim) = ctx.elementwise(n);
+        // SAFETY: ranges index `isect_from_gaussian_rank`, whose entries index the slots.
+        unsafe {
+            sum_slots::launch_unchecked(
+                &ctx.client,
+                count,
+                dim,
+                arg(&slots, slots_len),
+                arg(&isect_from_gaussian_rank, isect_len),
+                arg(&gaussian_ranges, n * 2),
+                arg(&grad2d, grad_len),
+                n as u32,
+            );
+        }
+    }
+
+    let grad_means = ctx.empty(n * 3);
+    let grad_cov6 = ctx.empty(n * 6);
+    let grad_colors = ctx.empty(n * 3);
+    let grad_opacities = ctx.empty(n);
+    let (count, dim) = ctx.elementwise(n);
+    // SAFETY: one thread per Gaussian, bounds-checked against `n`.
+    unsafe {
+        project_backward::launch_unchecked(
+            &ctx.client,
+            count,
+            dim,
+            arg(&means.handle, n * 3),
+            arg(&cov6.handle, n * 6),
+            arg(&cam, CAMERA_LEN),
+            arg(&projected.handle, n * PROJECTED_STRIDE as usize),
+            arg(&grad2d, grad_len),
+            arg(&grad_means, n * 3),
+            arg(&grad_cov6, n * 6),
+            arg(&grad_colors, n * 3),
+            arg(&grad_opacities, n),
+            n as u32,
+        );
+    }
+    [
+        ctx.tensor(grad_means, [n, 3], DType::F32),
+        ctx.tensor(grad_cov6, [n, 6], DType::F32),
+        ctx.tensor(grad_colors, [n, 3], DType::F32),
+        ctx.tensor(grad_opacities, [n], DType::F32),
+    ]
+}
+
+/// Exclusive prefix sum of `values` with the rasterizer's multi-level scan kernels, and the
+/// total. A host-slice entry point for tests and diagnostics of the scan.
+///
+/// # Panics
+/// When `values` has `2^32` or more entries or the device read fails.
+pub fn exclusive_scan_u32(device: &CubeDevice, values: &[u32]) -> (Vec<u32>, u32) {
+    if values.is_empty() {
+        return (Vec::new(), 0);
+    }
+    let ctx = Ctx::on(device);
+    let input = ctx.client.create_from_slice(u32::as_bytes(values));
+    let (output, total) = ctx.exclusive_scan(&input, values.len());
+    (ctx.read_words(&output, values.len()), ctx.read_u32(&total))
+}
+
+/// Stable sort of `(key, value)` pairs by the low `bits` bits of the keys with the
+/// rasterizer's radix sort kernels. A host-slice entry point for tests and diagnostics.
+///
+/// # Panics
+/// When the slices differ in length or the device read fails.
+pub fn radix_sort_u32(
+    device: &CubeDevice,
+    keys: &[u32],
+    values: &[u32],
+    bits: u32,
+) -> (Vec<u32>, Vec<u32>) {
+    assert_eq!(keys.len(), values.len(), "one value per key");
+    if keys.is_empty() {
+        return (Vec::new(), Vec::new());
+    }
+    let ctx = Ctx::on(device);
+    let key_buf = ctx.client.create_from_slice(u32::as_bytes(keys));
+    let value_buf = ctx.client.create_from_slice(u32::as_bytes(values));
+    let (sorted_keys, sorted_values) = ctx.radix_sort(&key_buf, &value_buf, keys.len(), bits);
+    (
+        ctx.read_words(&sorted_keys, keys.len()),
+        ctx.read_words(&sorted_values, keys.len()),
+    )
+}
+
+/// Checks the input shapes and returns `N`.
+fn check_shapes(
+    means: &CubeTensor,
+    cov6: &CubeTensor,
+    colors: &CubeTensor,
+    opacities: &CubeTensor,
+) -> usize {
+    let dims = |t: &CubeTensor| t.meta.shape().as_slice().to_vec();
+    let n = dims(means).first().copied().unwrap_or(0);
+    assert_eq!(dims(means), [n, 3], "means must be [N, 3]");
+    assert_eq!(dims(cov6), [n, 6], "cov6 must be [N, 6]");
+    assert_eq!(dims(colors), [n, 3], "colors must be [N, 3]");
+    assert_eq!(dims(opacities), [n], "opacities must be [N]");
+    assert!(
+        n < (1 << 31),
+        "at most 2^31 - 1 Gaussians are supported, got {n}"
+    );
+    n
+}
+
+/// Number of bits needed to hold `max_value` (0 for 0).
+fn bit_length(max_value: u32) -> u32 {
+    u32::BITS - max_value.leading_zeros()
+}
+
+/// A kernel argument over the first `len` elements of `handle` (at least one).
+fn arg(handle: &Handle, len: usize) -> BufferArg {
+    // SAFETY: callers pass the element count the buffer was allocated with (or fewer).
+    unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
+}
+
+/// Image and tile grid sizes of a camera.
+struct Frame {
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+}
+
+impl Frame {
+    fn new(camera: &Camera) -> Self {
+        assert!(
+            camera.width > 0 && camera.height > 0,
+            "the image must not be empty, got {}x{}",
+            camera.width,
+            camera.height
+        );
+        Self {
+            width: camera.width,
+            height: camera.height,
+            tiles_x: camera.width.div_ceil(TILE_SIZE),
+            tiles_y: camera.height.div_ceil(TILE_SIZE),
+        }
+    }
+
+    fn num_tiles(&self) -> usize {
+        self.tiles_x as usize * self.tiles_y as usize
+    }
+
+    fn num_pixels(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    fn tile_grid(&self) -> CubeCount {
+        CubeCount::Static(self.tiles_x, self.tiles_y, 1)
+    }
+
+    fn tile_dim(&self) -> CubeDim {
+        CubeDim::new_2d(TILE_SIZE, TILE_SIZE)
+    }
+}
+
+/// The client and device every buffer of one pass lives on, with buffer helpers.
+struct Ctx {
+    client: Client,
+    device: CubeDevice,
+}
+
+impl Ctx {
+    fn new(reference: &CubeTensor) -> Self {
+        Self {
+            client: reference.client.clone(),
+            device: reference.device.clone(),
+        }
+    }
+
+    fn on(device: &CubeDevice) -> Self {
+        Self {
+            client: device.client(),
+            device: device.clone(),
+        }
+    }
+
+    /// `tensor` as a contiguous `f32` tensor on this context's device.
+    fn float_input(&self, tensor: CubeTensor) -> CubeTensor {
+        assert!(
+            tensor.device == self.device,
+            "all splat inputs must be on the same device"
+        );
+        let tensor = if tensor.dtype == DType::F32 {
+            tensor
+        } else {
+            cast(tensor, DType::F32)
+        };
+        into_contiguous(tensor)
+    }
+
+    /// The camera buffer (see `texavatars_kernels::splat::camera`).
+    fn camera(&self, camera: &Camera, background: [f32; 3]) -> Handle {
+        let packed = pack_camera(
+            [camera.width, camera.height],
+            [camera.fx, camera.fy, camera.cx, camera.cy],
+            &camera.world_to_camera,
+            background,
+        );
+        self.client.create_from_slice(f32::as_bytes(&packed))
+    }
+
+    /// `handle`, or a one-element zero buffer when `handle` may be empty.
+    fn nonempty(&self, handle: &Handle) -> Handle {
+        if handle.size() == 0 {
+            self.zeros(1)
+        } else {
+            handle.clone()
+        }
+    }
+
+    /// An uninitialised buffer of `len` (at least one) 32-bit words.
+    fn empty(&self, len: usize) -> Handle {
+        self.client.empty(len.max(1) * size_of::<u32>())
+    }
+
+    /// A zero-filled buffer of `len` (at least one) 32-bit words (`0u32` and `0.0f32`).
+    fn zeros(&self, len: usize) -> Handle {
+        let handle = self.empty(len);
+        let len = len.max(1);
+        let (count, dim) = self.elementwise(len);
+        // SAFETY: one thread per element, bounds-checked against `len`.
+        unsafe {
+            fill_u32::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                arg(&handle, len),
+                0u32,
+                len as u32,
+            );
+        }
+        handle
+    }
+
+    /// `[0, 1, ..., len - 1]`.
+    fn iota(&self, len: usize) -> Handle {
+        let handle = self.empty(len);
+        let (count, dim) = self.elementwise(len);
+        // SAFETY: one thread per element, bounds-checked against `len`.
+        unsafe {
+            iota_u32::launch_unchecked(&self.client, count, dim, arg(&handle, len), len as u32);
+        }
+        handle
+    }
+
+    /// `source[index[i]]` for `i < len`.
+    fn gather(&self, source: &Handle, index: &Handle, len: usize) -> Handle {
+        let output = self.empty(len);
+        let (count, dim) = self.elementwise(len);
+        let source_len = source.size() as usize / size_of::<u32>();
+        // SAFETY: `index` holds `len` valid indices into `source`.
+        unsafe {
+            gather_u32::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                arg(source, source_len),
+                arg(index, len),
+                arg(&output, len),
+                len as u32,
+            );
+        }
+        output
+    }
+
+    /// Writes the `[start, end)` of every key of the sorted `keys` (`len` entries) into
+    /// `ranges` (zero-filled by the caller).
+    fn segment_ranges(&self, keys: &Handle, ranges: &Handle, len: usize) {
+        let (count, dim) = self.elementwise(len);
+        let ranges_len = ranges.size() as usize / size_of::<u32>();
+        // SAFETY: every key indexes `ranges` (keys are tile or Gaussian ids).
+        unsafe {
+            segment_ranges::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                arg(keys, len),
+                arg(ranges, ranges_len),
+                len as u32,
+            );
+        }
+    }
+
+    /// Exclusive prefix sum of the `len >= 1` words of `input`, and a one-word buffer with
+    /// their total.
+    fn exclusive_scan(&self, input: &Handle, len: usize) -> (Handle, Handle) {
+        let blocks = len.div_ceil(SCAN_BLOCK as usize);
+        let output = self.empty(len);
+        let block_sums = self.empty(blocks);
+        let (count, dim) = self.blocks(blocks, SCAN_THREADS);
+        // SAFETY: one workgroup per block, bounds-checked against `len` and `blocks`.
+        unsafe {
+            scan_blocks::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                arg(input, len),
+                arg(&output, len),
+                arg(&block_sums, blocks),
+                len as u32,
+                blocks as u32,
+            );
+        }
+        if blocks == 1 {
+            return (output, block_sums);
+        }
+        let (block_offsets, total) = self.exclusive_scan(&block_sums, blocks);
+        let (count, dim) = self.blocks(blocks, SCAN_THREADS);
+        // SAFETY: as above.
+        unsafe {
+            scan_add_block_offsets::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                arg(&output, len),
+                arg(&block_offsets, blocks),
+                len as u32,
+                blocks as u32,
+            );
+        }
+        (output, total)
+    }
+
+    /// Stable sort of `len` `(key, value)` pairs by the low `bits` bits of the keys. The
+    /// inputs are not modified; returns new `(keys, values)` buffers (the inputs themselves
+    /// when there is nothing to sort).
+    fn radix_sort(
+        &self,
+        keys: &Handle,
+        values: &Handle,
+        len: usize,
+        bits: u32,
+    ) -> (Handle, Handle) {
+        if bits == 0 || len <= 1 {
+            return (keys.clone(), values.clone());
+        }
+        let blocks = len.div_ceil(RADIX_BLOCK as usize);
+        let histogram_len = RADIX_BUCKETS as usize * blocks;
+        let histogram = self.empty(histogram_len);
+        let buffers = [
+            (self.empty(len), self.empty(len)),
+            (self.empty(len), self.empty(len)),
+        ];
+        let (mut cur_keys, mut cur_values) = (keys.clone(), values.clone());
+        for (pass, shift) in (0..bits).step_by(RADIX_BITS as usize).enumerate() {
+            let (next_keys, next_values) = buffers[pass % 2].clone();
+            let (count, dim) = self.blocks(blocks, RADIX_THREADS);
+            // SAFETY: one workgroup per block, bounds-checked against `len` and `blocks`;
+            // scattered positions are a permutation of `0..len`.
+            unsafe {
+                radix_histogram::launch_unchecked(
+                    &self.client,
+                    count.clone(),
+                    dim,
+                    arg(&cur_keys, len),
+                    arg(&histogram, histogram_len),
+                    len as u32,
+                    shift,
+                    blocks as u32,
+                );
+            }
+            let (digit_offsets, _) = self.exclusive_scan(&histogram, histogram_len);
+            unsafe {
+                radix_scatter::launch_unchecked(
+                    &self.client,
+                    count,
+                    dim,
+                    arg(&cur_keys, len),
+                    arg(&cur_values, len),
+                    arg(&digit_offsets, histogram_len),
+                    arg(&next_keys, len),
+                    arg(&next_values, len),
+                    len as u32,
+                    shift,
+                    blocks as u32,
+                );
+            }
+            cur_keys = next_keys;
+            cur_values = next_values;
+        }
+        (cur_keys, cur_values)
+    }
+
+    /// Reads the first `len` words of `handle`.
+    fn read_words(&self, handle: &Handle, len: usize) -> Vec<u32> {
+        let bytes = self
+            .client
+            .read_one(handle.clone())
+            .expect("reading a buffer back from the device failed");
+        bytes
+            .chunks_exact(size_of::<u32>())
+            .take(len)
+            .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+            .collect()
+    }
+
+    /// Reads the first word of `handle`.
+    fn read_u32(&self, handle: &Handle) -> u32 {
+        let bytes = self
+            .client
+            .read_one(handle.clone())
+            .expect("reading the intersection count back from the device failed");
+        u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
+    }
+
+    /// Launch configuration for one thread per element.
+    fn elementwise(&self, len: usize) -> (CubeCount, CubeDim) {
+        let dim = CubeDim::new_1d(ELEMENTWISE_THREADS);
+        let count = calculate_cube_count_elemwise(&self.client, len.max(1), dim);
+        (count, dim)
+    }
+
+    /// Launch configuration for `blocks` workgroups of `threads` threads (the kernels read
+    /// their block from the linear cube position and skip positions past `blocks`).
+    fn blocks(&self, blocks: usize, threads: u32) -> (CubeCount, CubeDim) {
+        let dim = CubeDim::new_1d(threads);
+        let count =
+            calculate_cube_count_elemwise(&self.client, blocks.max(1) * threads as usize, dim);
+        (count, dim)
+    }
+
+    /// Wraps a contiguous buffer as a tensor.
+    fn tensor<const D: usize>(
+        &self,
+        handle: Handle,
+        shape: [usize; D],
+        dtype: DType,
+    ) -> CubeTensor {
+        if shape.iter().product::<usize>() == 0 {
+            return empty_device_dtype(
+                self.client.clone(),
+                self.device.clone(),
+                Shape::new(shape),
+                dtype,
+            );
+        }
+        CubeTensor::new_contiguous(
+            self.client.clone(),
+            self.device.clone(),
+            Shape::new(shape),
+            handle,
+            dtype,
+        )
+    }
+
+    /// An empty (zero-element) `f32` tensor.
+    fn empty_tensor<const D: usize>(&self, shape: [usize; D]) -> CubeTensor {
+        empty_device_dtype(
+            self.client.clone(),
+            self.device.clone(),
+            Shape::new(shape),
+            DType::F32,
+        )
+    }
+}
