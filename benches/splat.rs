@@ -1,68 +1,91 @@
-//! Rasterizer forward and backward at 550x802 (NeRSemble's size) for 10k, 100k and 200k
-//! Gaussians on the demo head, on the CPU tile renderer (2 threads) and on wgpu.
+//! Rasterizer forward and backward at 802x550 (H x W, NeRSemble's size) for 10k, 100k and
+//! 200k Gaussians on the demo head, through the `SplatBackend` extension that `render` uses:
+//! the CPU tile renderer on ndarray (rayon; the machine's 2 cores) and the CubeCL kernels on
+//! wgpu (lavapipe when there is no GPU).
 //!
-//! `cargo bench --bench splat` (set `TEXAVATARS_BENCH_WGPU=0` to skip wgpu).
+//! `cargo bench --bench splat`; `TEXAVATARS_BENCH=cpu` or `=wgpu` runs one backend only.
+//! Every iteration ends with a read-back, so GPU work is included in the time.
 
+use burn::backend::Dispatch;
+use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use texavatars::splat::{cpu, demo};
+use std::time::Duration;
+use texavatars::splat::{SplatBackend, SplatInputs, SplatParams, demo, sh};
 
-struct HostScene {
-    means: Vec<f32>,
-    cov6: Vec<f32>,
-    colors: Vec<f32>,
-    opacities: Vec<f32>,
-}
-
-fn host_scene(n: usize) -> HostScene {
+fn inputs(n: usize, device: &Device) -> SplatInputs<Dispatch> {
     let ply = demo::scene(n, 7);
-    let colors = ply
-        .sh
-        .iter()
-        .map(|c| (c * texavatars::splat::sh::C0 + 0.5).max(0.0))
-        .collect();
-    HostScene {
-        means: ply.means.clone(),
-        cov6: ply.cov6(),
-        colors,
-        opacities: ply.opacities(),
+    let colors: Vec<f32> = ply.sh.iter().map(|c| (c * sh::C0 + 0.5).max(0.0)).collect();
+    let t2 = |v: Vec<f32>, w: usize| {
+        Tensor::<2>::from_data(TensorData::new(v, [n, w]), device).into_dispatch()
+    };
+    SplatInputs {
+        means: t2(ply.means.clone(), 3),
+        cov6: t2(ply.cov6(), 6),
+        colors: t2(colors, 3),
+        opacities: Tensor::<1>::from_data(TensorData::new(ply.opacities(), [n]), device)
+            .into_dispatch(),
     }
 }
 
-fn bench_cpu(c: &mut Criterion) {
-    let threads = std::env::var("TEXAVATARS_BENCH_THREADS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(2);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .expect("thread pool");
+fn sync(t: burn::backend::DispatchTensor) {
+    let t = Tensor::<1>::from_dispatch(t);
+    let _ = t.sum().into_data();
+}
+
+#[allow(deprecated)]
+fn devices() -> Vec<(&'static str, Device)> {
+    let which = std::env::var("TEXAVATARS_BENCH").unwrap_or_default();
+    let mut d = Vec::new();
+    if which.is_empty() || which == "cpu" {
+        d.push(("cpu_ndarray", Device::ndarray()));
+    }
+    if which.is_empty() || which == "wgpu" {
+        d.push(("wgpu", Device::wgpu(DeviceKind::DefaultDevice)));
+    }
+    d
+}
+
+fn bench(c: &mut Criterion) {
     let cam = demo::camera();
-    let mut group = c.benchmark_group(format!("splat_cpu_{threads}threads_550x802"));
-    group.sample_size(10);
-    for n in [10_000usize, 100_000, 200_000] {
-        let s = host_scene(n);
-        let scene = cpu::Scene {
-            means: &s.means,
-            cov6: &s.cov6,
-            colors: &s.colors,
-            opacities: &s.opacities,
-        };
-        group.bench_with_input(BenchmarkId::new("forward", n), &n, |b, _| {
-            b.iter(|| pool.install(|| cpu::forward(&scene, &cam.camera, cam.background)))
-        });
-        let fwd = pool.install(|| cpu::forward(&scene, &cam.camera, cam.background));
-        let grad_out: Vec<f32> = (0..fwd.out.len())
-            .map(|i| ((i % 7) as f32 - 3.0) * 0.1)
-            .collect();
-        group.bench_with_input(BenchmarkId::new("backward", n), &n, |b, _| {
-            b.iter(|| {
-                pool.install(|| cpu::backward(&scene, &cam.camera, cam.background, &fwd, &grad_out))
-            })
-        });
+    let params = SplatParams {
+        camera: cam.camera,
+        background: cam.background,
+    };
+    let (w, h) = (cam.camera.width as usize, cam.camera.height as usize);
+    for (name, device) in devices() {
+        let mut group = c.benchmark_group(format!("splat_{name}_802x550"));
+        group.sample_size(10);
+        group.warm_up_time(Duration::from_secs(2));
+        group.measurement_time(Duration::from_secs(8));
+        for n in [10_000usize, 100_000, 200_000] {
+            let inp = inputs(n, &device);
+            group.bench_with_input(BenchmarkId::new("forward", n), &n, |b, _| {
+                b.iter(|| {
+                    let s = <Dispatch as SplatBackend>::splat_forward(inp.clone(), params);
+                    sync(s.out)
+                })
+            });
+            let state = <Dispatch as SplatBackend>::splat_forward(inp.clone(), params);
+            let g: Vec<f32> = (0..h * w * 4)
+                .map(|i| ((i % 7) as f32 - 3.0) * 0.1)
+                .collect();
+            let grad =
+                Tensor::<3>::from_data(TensorData::new(g, [h, w, 4]), &device).into_dispatch();
+            group.bench_with_input(BenchmarkId::new("backward", n), &n, |b, _| {
+                b.iter(|| {
+                    let g = <Dispatch as SplatBackend>::splat_backward(
+                        inp.clone(),
+                        state.clone(),
+                        grad.clone(),
+                        params,
+                    );
+                    sync(g.opacities)
+                })
+            });
+        }
+        group.finish();
     }
-    group.finish();
 }
 
-criterion_group!(benches, bench_cpu);
+criterion_group!(benches, bench);
 criterion_main!(benches);

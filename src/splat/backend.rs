@@ -16,8 +16,7 @@ use burn::backend::autodiff::{
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
-    AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata,
-    backend_extension,
+    AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
 };
 use burn::tensor::{Shape, TensorData};
 
