@@ -155,28 +155,9 @@ fn random_cov(rng: &mut Rng, lo: f32, hi: f32) -> [f32; 6] {
         rng.range(-1.0, 1.0),
         rng.range(-1.0, 1.0),
     ];
-    let len = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-3);
-    let [w, x, y, z] = q.map(|v| v / len);
-    let r = [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ];
     let s = [rng.range(lo, hi), rng.range(lo, hi), rng.range(lo, hi)];
-    let m = |i: usize, j: usize| (0..3).map(|k| r[i][k] * s[k] * r[j][k]).sum::<f32>();
-    [m(0, 0), m(0, 1), m(0, 2), m(1, 1), m(1, 2), m(2, 2)]
+    // `s` are variances; the library takes standard deviations.
+    texavatars::splat::ply::cov6_from_quat_scale(q, s.map(f32::sqrt))
 }
 
 /// `n` random Gaussians in front of `camera`, roughly within its view.

@@ -5,32 +5,9 @@
 mod common;
 
 use burn::tensor::Device;
-use common::{Outcome, Scene, assert_close, fixture, random_scene, run};
+use common::{Outcome, Scene, assert_close, fixture, fused, ndarray, random_scene, reference, run};
 use texavatars::splat::cpu;
 use texavatars::splat::{render, render_reference};
-
-#[allow(deprecated)]
-fn ndarray() -> Device {
-    Device::ndarray().autodiff()
-}
-
-fn fused(scene: &Scene, device: &Device) -> Outcome {
-    run(
-        scene,
-        device,
-        |g, p| render(g, p).expect("valid inputs"),
-        None,
-    )
-}
-
-fn reference(scene: &Scene, device: &Device) -> Outcome {
-    run(
-        scene,
-        device,
-        |g, p| render_reference(g, p).expect("valid inputs"),
-        None,
-    )
-}
 
 #[test]
 fn fixtures_cpu_and_reference() {

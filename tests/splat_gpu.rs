@@ -6,25 +6,11 @@
 mod common;
 
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use common::{Outcome, Scene, assert_close, fixture, random_scene, run};
+use common::{Scene, assert_close, fixture, fused, ndarray, random_scene, run};
 use texavatars::splat::{render, render_reference};
 
 fn wgpu() -> Device {
     Device::wgpu(DeviceKind::DefaultDevice).autodiff()
-}
-
-#[allow(deprecated)]
-fn ndarray() -> Device {
-    Device::ndarray().autodiff()
-}
-
-fn fused(scene: &Scene, device: &Device) -> Outcome {
-    run(
-        scene,
-        device,
-        |g, p| render(g, p).expect("valid inputs"),
-        None,
-    )
 }
 
 #[test]

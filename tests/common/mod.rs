@@ -226,6 +226,32 @@ pub fn run(
     }
 }
 
+/// The ndarray device with autodiff.
+#[allow(deprecated)]
+pub fn ndarray() -> Device {
+    Device::ndarray().autodiff()
+}
+
+/// Renders with the fused operator of `device` and back-propagates (see [`run`]).
+pub fn fused(scene: &Scene, device: &Device) -> Outcome {
+    run(
+        scene,
+        device,
+        |g, p| texavatars::splat::render(g, p).expect("valid inputs"),
+        None,
+    )
+}
+
+/// Renders with the dense reference on `device` and back-propagates (see [`run`]).
+pub fn reference(scene: &Scene, device: &Device) -> Outcome {
+    run(
+        scene,
+        device,
+        |g, p| texavatars::splat::render_reference(g, p).expect("valid inputs"),
+        None,
+    )
+}
+
 /// Largest absolute difference.
 pub fn max_abs(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
