@@ -87,5 +87,36 @@ fn bench(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, bench);
+/// The CPU forward's stages on host memory (where the time goes), 200k Gaussians.
+fn bench_cpu_stages(c: &mut Criterion) {
+    if std::env::var("TEXAVATARS_BENCH").is_ok_and(|v| v != "cpu") {
+        return;
+    }
+    use texavatars::splat::cpu;
+    let cam = demo::camera();
+    let ply = demo::scene(200_000, 7);
+    let colors: Vec<f32> = ply.sh.iter().map(|c| (c * sh::C0 + 0.5).max(0.0)).collect();
+    let (cov6, opacities) = (ply.cov6(), ply.opacities());
+    let scene = cpu::Scene {
+        means: &ply.means,
+        cov6: &cov6,
+        colors: &colors,
+        opacities: &opacities,
+    };
+    let pc = cpu::ProjCamera::new(&cam.camera);
+    let mut group = c.benchmark_group("splat_cpu_stages_200000_802x550");
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(4));
+    group.bench_function("project", |b| b.iter(|| cpu::project_all(&scene, &pc)));
+    let projections = cpu::project_all(&scene, &pc);
+    group.bench_function("bin", |b| b.iter(|| cpu::bin(&projections, &pc)));
+    let bins = cpu::bin(&projections, &pc);
+    group.bench_function("rasterize", |b| {
+        b.iter(|| cpu::rasterize(&pc, &projections, &bins, cam.background))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_cpu_stages, bench);
 criterion_main!(benches);
