@@ -3,7 +3,8 @@
 //! the CPU tile renderer on ndarray (rayon; the machine's 2 cores) and the CubeCL kernels on
 //! wgpu (lavapipe when there is no GPU).
 //!
-//! `cargo bench --bench splat`; `TEXAVATARS_BENCH=cpu` or `=wgpu` runs one backend only.
+//! `cargo bench --bench splat`; `TEXAVATARS_BENCH=cpu`, `=flex` or `=wgpu` runs one backend
+//! only.
 //! Every iteration ends with a read-back, so GPU work is included in the time.
 
 use burn::backend::Dispatch;
@@ -38,6 +39,9 @@ fn devices() -> Vec<(&'static str, Device)> {
     let mut d = Vec::new();
     if which.is_empty() || which == "cpu" {
         d.push(("cpu_ndarray", Device::ndarray()));
+    }
+    if which.is_empty() || which == "flex" {
+        d.push(("cpu_flex", Device::flex()));
     }
     if which.is_empty() || which == "wgpu" {
         d.push(("wgpu", Device::wgpu(DeviceKind::DefaultDevice)));
@@ -79,7 +83,12 @@ fn bench(c: &mut Criterion) {
                         grad.clone(),
                         params,
                     );
-                    sync(g.opacities)
+                    // Wait for every output, not just one of them.
+                    let sum = [g.means, g.cov6, g.colors]
+                        .into_iter()
+                        .map(|t| Tensor::<2>::from_dispatch(t).sum())
+                        .fold(Tensor::<1>::from_dispatch(g.opacities).sum(), |a, b| a + b);
+                    let _ = sum.into_data();
                 })
             });
         }
