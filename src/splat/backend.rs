@@ -344,35 +344,27 @@ pub fn cpu_backward<H: HostIo>(
     }
 }
 
-impl SplatBackend for NdArray {
-    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
-        cpu_forward::<Self>(inputs, params)
-    }
+/// The CPU backends share one implementation: the tile renderer on host memory.
+macro_rules! cpu_splat_backend {
+    ($($backend:ty),*) => {$(
+        impl SplatBackend for $backend {
+            fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
+                cpu_forward::<Self>(inputs, params)
+            }
 
-    fn splat_backward(
-        inputs: SplatInputs<Self>,
-        state: SplatState<Self>,
-        grad_out: FloatTensor<Self>,
-        params: SplatParams,
-    ) -> SplatGrads<Self> {
-        cpu_backward::<Self>(inputs, state, grad_out, params)
-    }
+            fn splat_backward(
+                inputs: SplatInputs<Self>,
+                state: SplatState<Self>,
+                grad_out: FloatTensor<Self>,
+                params: SplatParams,
+            ) -> SplatGrads<Self> {
+                cpu_backward::<Self>(inputs, state, grad_out, params)
+            }
+        }
+    )*};
 }
 
-impl SplatBackend for Flex {
-    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
-        cpu_forward::<Self>(inputs, params)
-    }
-
-    fn splat_backward(
-        inputs: SplatInputs<Self>,
-        state: SplatState<Self>,
-        grad_out: FloatTensor<Self>,
-        params: SplatParams,
-    ) -> SplatGrads<Self> {
-        cpu_backward::<Self>(inputs, state, grad_out, params)
-    }
-}
+cpu_splat_backend!(NdArray, Flex);
 
 // ---------------------------------------------------------------------------------------------
 // cubecl (wgpu): the CubeCL kernels of `texavatars-kernels`.
