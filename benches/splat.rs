@@ -13,6 +13,10 @@ use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use std::time::Duration;
 use texavatars::splat::{SplatBackend, SplatInputs, SplatParams, demo, sh};
 
+/// The allocator the `texavatars` binary uses (see `src/main.rs`).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn inputs(n: usize, device: &Device) -> SplatInputs<Dispatch> {
     let ply = demo::scene(n, 7);
     let colors: Vec<f32> = ply.sh.iter().map(|c| (c * sh::C0 + 0.5).max(0.0)).collect();

@@ -196,30 +196,34 @@ fn ints<B: Backend>(v: Vec<u32>, shape: &[usize], device: &B::Device) -> IntTens
 const CPU_PROJECTED: usize = 16;
 
 fn pack_projections(p: &[Option<cpu::Projection>]) -> Vec<f32> {
+    use rayon::prelude::*;
     let mut v = vec![0.0f32; p.len() * CPU_PROJECTED];
-    for (row, p) in v.chunks_mut(CPU_PROJECTED).zip(p) {
-        if let Some(p) = p {
-            let s = &p.splat;
-            row.copy_from_slice(&[
-                s.u,
-                s.v,
-                s.a,
-                s.b,
-                s.c,
-                s.opacity,
-                s.rgb[0],
-                s.rgb[1],
-                s.rgb[2],
-                s.sigma_cut,
-                p.depth,
-                f32::from_bits(p.pixels.x0),
-                f32::from_bits(p.pixels.y0),
-                f32::from_bits(p.pixels.x1),
-                f32::from_bits(p.pixels.y1),
-                1.0,
-            ]);
-        }
-    }
+    v.par_chunks_mut(CPU_PROJECTED)
+        .zip(p)
+        .with_min_len(1024)
+        .for_each(|(row, p)| {
+            if let Some(p) = p {
+                let s = &p.splat;
+                row.copy_from_slice(&[
+                    s.u,
+                    s.v,
+                    s.a,
+                    s.b,
+                    s.c,
+                    s.opacity,
+                    s.rgb[0],
+                    s.rgb[1],
+                    s.rgb[2],
+                    s.sigma_cut,
+                    p.depth,
+                    f32::from_bits(p.pixels.x0),
+                    f32::from_bits(p.pixels.y0),
+                    f32::from_bits(p.pixels.x1),
+                    f32::from_bits(p.pixels.y1),
+                    1.0,
+                ]);
+            }
+        });
     v
 }
 
