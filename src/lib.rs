@@ -1,14 +1,18 @@
 //! texavatars: hybrid texel-3D Gaussian head avatars (TexAvatars, 3DV 2026) on burn.
 //!
-//! The modules follow the data flow: [`camera`] → [`splat`] (the differentiable Gaussian
-//! rasterizer).
+//! The modules follow the data flow: [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps,
+//! sample grid, per-face frames) → [`lift`] (local texel attributes to 3D Gaussians) →
+//! [`camera`] → [`splat`] (the differentiable Gaussian rasterizer).
 
 pub mod camera;
 pub mod cli;
 pub mod device;
 pub mod error;
 pub mod io;
+pub mod lift;
+pub mod mesh;
 pub mod splat;
+pub mod texel;
 
 pub use burn;
 pub use texavatars_kernels as kernels;

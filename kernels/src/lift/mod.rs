@@ -1,0 +1,3 @@
+//! The texel-Jacobian lifting operator's shared constants (kernels follow in later work).
+
+pub mod constants;

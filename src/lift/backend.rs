@@ -1,0 +1,191 @@
+//! The lifting operator as a burn backend extension.
+//!
+//! [`LiftBackend`] is implemented for the CPU backends (ndarray and flex) by the fused code of
+//! [`crate::lift::cpu`], and for `Autodiff<B>` with a handwritten backward that calls the
+//! inner backend's [`LiftBackend::lift_backward`]. On burn's cubecl backend (wgpu) the CubeCL
+//! kernels are not written yet: wgpu tensors go through the same fused CPU code with a host
+//! round trip, so the operator works (slowly) on every backend meanwhile.
+
+// burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
+#![allow(deprecated)]
+
+use burn::backend::autodiff::{
+    Autodiff,
+    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
+    grads::Gradients,
+    ops::{Backward, Ops, OpsKind},
+};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{
+    AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
+};
+use burn::tensor::{Shape, TensorData};
+
+use crate::kernels::lift::constants::{LOCAL_CHANNELS, OUT_CHANNELS};
+use crate::lift::{LiftParams, cpu};
+use crate::splat::backend::HostIo;
+
+/// Gradients of a lift's two inputs.
+///
+/// # Shapes
+/// - `local`: [14, R, R]; `vertices`: [V, 3]
+#[derive(ExtensionType, Debug, Clone)]
+pub struct LiftGradients<B: Backend> {
+    pub local: FloatTensor<B>,
+    pub vertices: FloatTensor<B>,
+}
+
+/// Backends with the fused lifting operator.
+#[backend_extension(NdArray, Flex, Cube, Autodiff)]
+pub trait LiftBackend: Backend {
+    /// Local maps [14, R, R] and posed vertices [V, 3] → packed Gaussians [N, 13]
+    /// (mean 3, cov 6, RGB 3, opacity 1).
+    fn lift(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> FloatTensor<Self>;
+
+    /// Backward: `grad_out` [N, 13] → gradients of the local maps and the vertices.
+    fn lift_backward(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        grad_out: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> LiftGradients<Self>;
+}
+
+fn floats<B: Backend>(v: Vec<f32>, shape: &[usize], device: &B::Device) -> FloatTensor<B> {
+    B::float_from_data(TensorData::new(v, Shape::from(shape.to_vec())), device)
+}
+
+fn host_lift<H: HostIo>(
+    local: FloatTensor<H>,
+    vertices: FloatTensor<H>,
+    params: LiftParams,
+) -> FloatTensor<H> {
+    let device = local.device();
+    let out = cpu::forward(
+        &params.topology,
+        params.mode,
+        params.frame,
+        &H::floats(local),
+        &H::floats(vertices),
+    );
+    floats::<H>(out, &[params.topology.len(), OUT_CHANNELS], &device)
+}
+
+fn host_lift_backward<H: HostIo>(
+    local: FloatTensor<H>,
+    vertices: FloatTensor<H>,
+    grad_out: FloatTensor<H>,
+    params: LiftParams,
+) -> LiftGradients<H> {
+    let device = local.device();
+    let t = &params.topology;
+    let (dl, dv) = cpu::backward(
+        t,
+        params.mode,
+        params.frame,
+        &H::floats(local),
+        &H::floats(vertices),
+        &H::floats(grad_out),
+    );
+    LiftGradients {
+        local: floats::<H>(dl, &[LOCAL_CHANNELS, t.res(), t.res()], &device),
+        vertices: floats::<H>(dv, &[t.num_vertices, 3], &device),
+    }
+}
+
+macro_rules! host_lift_backend {
+    ($($b:ty),*) => {$(
+        impl LiftBackend for $b {
+            fn lift(
+                local: FloatTensor<Self>,
+                vertices: FloatTensor<Self>,
+                params: LiftParams,
+            ) -> FloatTensor<Self> {
+                host_lift::<Self>(local, vertices, params)
+            }
+
+            fn lift_backward(
+                local: FloatTensor<Self>,
+                vertices: FloatTensor<Self>,
+                grad_out: FloatTensor<Self>,
+                params: LiftParams,
+            ) -> LiftGradients<Self> {
+                host_lift_backward::<Self>(local, vertices, grad_out, params)
+            }
+        }
+    )*};
+}
+
+impl HostIo for Cube {}
+
+host_lift_backend!(NdArray, Flex, Cube);
+
+// ---------------------------------------------------------------------------------------------
+// Autodiff: the handwritten backward.
+
+#[derive(Debug)]
+struct LiftBackwardOp;
+
+impl<B: Backend + LiftBackend> Backward<B, 2> for LiftBackwardOp {
+    type State = (FloatTensor<B>, FloatTensor<B>, LiftParams);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let grad_out = grads.consume::<B>(&ops.node);
+        let (local, vertices, params) = ops.state;
+        let g = B::lift_backward(local, vertices, grad_out, params);
+        let [local_node, vertices_node] = ops.parents;
+        for (node, grad) in [(local_node, g.local), (vertices_node, g.vertices)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, grad);
+            }
+        }
+    }
+}
+
+impl<B: Backend + LiftBackend, C: CheckpointStrategy> LiftBackend for Autodiff<B, C> {
+    fn lift(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> FloatTensor<Self> {
+        let nodes = [local.node(), vertices.node()];
+        match LiftBackwardOp
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let (local, vertices) = (local.into_primitive(), vertices.into_primitive());
+                let out = B::lift(local.clone(), vertices.clone(), params.clone());
+                prep.finish((local, vertices, params), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::lift(
+                local.into_primitive(),
+                vertices.into_primitive(),
+                params,
+            )),
+        }
+    }
+
+    fn lift_backward(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        grad_out: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> LiftGradients<Self> {
+        let g = B::lift_backward(
+            local.into_primitive(),
+            vertices.into_primitive(),
+            grad_out.into_primitive(),
+            params,
+        );
+        LiftGradients {
+            local: Self::from_inner(g.local),
+            vertices: Self::from_inner(g.vertices),
+        }
+    }
+}

@@ -1,0 +1,5 @@
+//! Triangle meshes with UV layouts.
+
+pub mod obj;
+
+pub use obj::UvMesh;

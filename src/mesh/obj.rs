@@ -1,0 +1,330 @@
+//! OBJ input: positions, UVs and faces with separate position and UV indices.
+//!
+//! Parsing is done by `tobj` (quads and polygons triangulated as fans). `tobj` renumbers
+//! positions in order of first use, but tracked meshes (FLAME and the like) index vertices
+//! in file order, so a line-by-line pass over the file records every face corner's original
+//! indices; it also reports malformed input with its file and line, which `tobj` cannot.
+//! The two readings are checked against each other.
+
+use std::io::BufReader;
+use std::path::Path;
+
+use crate::error::{Error, Result};
+
+/// A triangle mesh with a UV layout. Positions and UVs have their own indices per corner.
+///
+/// # Shapes
+/// - `positions`: [V] in file order
+/// - `uvs`: [T] in file order; OBJ convention, `v` points up
+/// - `faces`, `uv_faces`: [F] corner indices into `positions` and `uvs`
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct UvMesh {
+    pub positions: Vec<[f32; 3]>,
+    pub uvs: Vec<[f32; 2]>,
+    pub faces: Vec<[u32; 3]>,
+    pub uv_faces: Vec<[u32; 3]>,
+}
+
+/// One face corner as written in the file.
+#[derive(Clone, Copy, Debug)]
+struct Corner {
+    position: usize,
+    uv: usize,
+}
+
+impl UvMesh {
+    /// Loads an OBJ file. Every face corner needs a UV index (`f p/t ...` or `f p/t/n ...`).
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Parses OBJ text; `name` is used in error messages.
+    pub fn parse(text: &str, name: &str) -> Result<Self> {
+        let scan = scan(text, name)?;
+        let models = load_tobj(text, name)?;
+
+        // tobj's triangles, in file order across its models, must be the scan's triangles.
+        let mut tobj_corners = 0usize;
+        let mut faces = Vec::with_capacity(scan.triangles.len());
+        let mut uv_faces = Vec::with_capacity(scan.triangles.len());
+        let mismatch = |why: String| Error::invalid(name, "f", why);
+        for m in &models {
+            let mesh = &m.mesh;
+            if mesh.texcoord_indices.len() != mesh.indices.len() {
+                return Err(mismatch("faces without UV indices".into()));
+            }
+            for (k, (&p, &t)) in mesh.indices.iter().zip(&mesh.texcoord_indices).enumerate() {
+                let Some((tri, line)) = scan.triangles.get(tobj_corners / 3) else {
+                    return Err(mismatch("tobj read more faces than the file has".into()));
+                };
+                let c = tri[tobj_corners % 3];
+                let (p, t) = (p as usize, t as usize);
+                let same_position = mesh.positions.get(3 * p..3 * p + 3).is_some_and(|v| {
+                    v.iter()
+                        .zip(scan.positions[c.position])
+                        .all(|(a, b)| *a == b)
+                });
+                let same_uv = mesh
+                    .texcoords
+                    .get(2 * t..2 * t + 2)
+                    .is_some_and(|v| v.iter().zip(scan.uvs[c.uv]).all(|(a, b)| *a == b));
+                if !same_position || !same_uv {
+                    return Err(Error::invalid(
+                        format!("{name}:{line}"),
+                        "f",
+                        format!("tobj and the line scan disagree on corner {}", k % 3 + 1),
+                    ));
+                }
+                tobj_corners += 1;
+            }
+        }
+        if tobj_corners != 3 * scan.triangles.len() {
+            return Err(mismatch(format!(
+                "tobj read {} triangles, the file has {}",
+                tobj_corners / 3,
+                scan.triangles.len()
+            )));
+        }
+        for (tri, _) in &scan.triangles {
+            faces.push(tri.map(|c| c.position as u32));
+            uv_faces.push(tri.map(|c| c.uv as u32));
+        }
+        if faces.is_empty() {
+            return Err(Error::invalid(name, "f", "the mesh has no faces"));
+        }
+        Ok(UvMesh {
+            positions: scan.positions,
+            uvs: scan.uvs,
+            faces,
+            uv_faces,
+        })
+    }
+
+    /// Writes the mesh as OBJ text (`v`, `vt`, `f p/t`), UVs as stored.
+    pub fn to_obj(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        for p in &self.positions {
+            let _ = writeln!(s, "v {} {} {}", p[0], p[1], p[2]);
+        }
+        for t in &self.uvs {
+            let _ = writeln!(s, "vt {} {}", t[0], t[1]);
+        }
+        for (f, t) in self.faces.iter().zip(&self.uv_faces) {
+            let _ = writeln!(
+                s,
+                "f {}/{} {}/{} {}/{}",
+                f[0] + 1,
+                t[0] + 1,
+                f[1] + 1,
+                t[1] + 1,
+                f[2] + 1,
+                t[2] + 1
+            );
+        }
+        s
+    }
+}
+
+fn load_tobj(text: &str, name: &str) -> Result<Vec<tobj::Model>> {
+    let options = tobj::LoadOptions {
+        single_index: false,
+        triangulate: true,
+        ignore_points: true,
+        ignore_lines: true,
+    };
+    let mut reader = BufReader::new(text.as_bytes());
+    let (models, _) = tobj::load_obj_buf(&mut reader, &options, |_| {
+        Ok((Vec::new(), Default::default()))
+    })
+    .map_err(|e| Error::invalid(name, "obj", format!("tobj: {e}")))?;
+    Ok(models)
+}
+
+/// What the line scan found.
+struct Scan {
+    positions: Vec<[f32; 3]>,
+    uvs: Vec<[f32; 2]>,
+    /// Fan-triangulated faces with the line each came from.
+    triangles: Vec<([Corner; 3], usize)>,
+}
+
+/// Reads `v`, `vt` and `f` lines, checking syntax, finiteness and index ranges.
+fn scan(text: &str, name: &str) -> Result<Scan> {
+    let mut positions = Vec::new();
+    let mut uvs = Vec::new();
+    // Corners as written (1-based or negative) and their line.
+    let mut polygons: Vec<(Vec<(i64, i64)>, usize)> = Vec::new();
+    for (i, raw) in text.lines().enumerate() {
+        let line = i + 1;
+        let at = || format!("{name}:{line}");
+        let content = raw.split('#').next().unwrap_or("");
+        let mut tokens = content.split_whitespace();
+        let Some(keyword) = tokens.next() else {
+            continue;
+        };
+        match keyword {
+            "v" | "vt" => {
+                let need = if keyword == "v" { 3 } else { 2 };
+                let values: Vec<&str> = tokens.collect();
+                if values.len() < need {
+                    return Err(Error::invalid(
+                        at(),
+                        keyword,
+                        format!("needs {need} numbers, found {}", values.len()),
+                    ));
+                }
+                let mut v = [0.0f32; 3];
+                for (k, s) in values.iter().take(need).enumerate() {
+                    v[k] = match s.parse::<f32>() {
+                        Ok(x) if x.is_finite() => x,
+                        Ok(_) => {
+                            return Err(Error::invalid(
+                                at(),
+                                keyword,
+                                format!("`{s}` is not finite"),
+                            ));
+                        }
+                        Err(_) => {
+                            return Err(Error::invalid(
+                                at(),
+                                keyword,
+                                format!("`{s}` is not a number"),
+                            ));
+                        }
+                    };
+                }
+                if keyword == "v" {
+                    positions.push(v);
+                } else {
+                    uvs.push([v[0], v[1]]);
+                }
+            }
+            "f" => {
+                let mut corners = Vec::new();
+                for tok in tokens {
+                    let mut parts = tok.split('/');
+                    let p = parts.next().unwrap_or("");
+                    let t = parts.next().unwrap_or("");
+                    let parse = |s: &str, what: &str| -> Result<i64> {
+                        match s.parse::<i64>() {
+                            Ok(0) => Err(Error::invalid(
+                                at(),
+                                "f",
+                                format!("{what} index 0 in `{tok}` (OBJ indices start at 1)"),
+                            )),
+                            Ok(v) => Ok(v),
+                            Err(_) if s.is_empty() && what == "UV" => Err(Error::invalid(
+                                at(),
+                                "f",
+                                format!("corner `{tok}` has no UV index (write p/t)"),
+                            )),
+                            Err(_) => Err(Error::invalid(
+                                at(),
+                                "f",
+                                format!("bad {what} index in `{tok}`"),
+                            )),
+                        }
+                    };
+                    let p = parse(p, "position")?;
+                    let t = parse(t, "UV")?;
+                    // Negative indices count back from the current end.
+                    let resolve = |v: i64, len: usize| if v < 0 { len as i64 + v + 1 } else { v };
+                    corners.push((resolve(p, positions.len()), resolve(t, uvs.len())));
+                }
+                if corners.len() < 3 {
+                    return Err(Error::invalid(
+                        at(),
+                        "f",
+                        format!("a face needs 3 corners, found {}", corners.len()),
+                    ));
+                }
+                polygons.push((corners, line));
+            }
+            _ => {}
+        }
+    }
+    let mut triangles = Vec::new();
+    for (corners, line) in polygons {
+        let mut resolved = Vec::with_capacity(corners.len());
+        for (p, t) in corners {
+            let bad = |what: &str, v: i64, len: usize| {
+                Error::invalid(
+                    format!("{name}:{line}"),
+                    "f",
+                    format!("{what} index {v} out of range (the file has {len})"),
+                )
+            };
+            if p < 1 || p as usize > positions.len() {
+                return Err(bad("position", p, positions.len()));
+            }
+            if t < 1 || t as usize > uvs.len() {
+                return Err(bad("UV", t, uvs.len()));
+            }
+            resolved.push(Corner {
+                position: p as usize - 1,
+                uv: t as usize - 1,
+            });
+        }
+        for k in 1..resolved.len() - 1 {
+            triangles.push(([resolved[0], resolved[k], resolved[k + 1]], line));
+        }
+    }
+    Ok(Scan {
+        positions,
+        uvs,
+        triangles,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const QUAD: &str = "# a unit quad, two triangles after triangulation\n\
+        v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 5 5 5\n\
+        vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n\
+        f 3/3 4/4 1/1 2/2\n";
+
+    #[test]
+    fn quads_are_triangulated_in_file_order() {
+        let m = UvMesh::parse(QUAD, "quad.obj").expect("valid OBJ");
+        // The unused vertex 5 keeps its place; tobj alone would drop and renumber.
+        assert_eq!(m.positions.len(), 5);
+        assert_eq!(m.faces, vec![[2, 3, 0], [2, 0, 1]]);
+        assert_eq!(m.uv_faces, vec![[2, 3, 0], [2, 0, 1]]);
+        let again = UvMesh::parse(&m.to_obj(), "again.obj").expect("round trip");
+        assert_eq!(again.faces, m.faces);
+        assert_eq!(again.positions[..4], m.positions[..4]);
+    }
+
+    #[test]
+    fn malformed_input_names_file_and_line() {
+        let cases = [
+            ("v 0 0\n", "m.obj:1", "needs 3 numbers"),
+            ("v 0 0 nan\n", "m.obj:1", "not finite"),
+            ("v 0 0 0\nvt 0 x\n", "m.obj:2", "not a number"),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1 2 3\n",
+                "m.obj:5",
+                "no UV index",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 4/1\n",
+                "m.obj:5",
+                "out of range",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nvt 0 0\nf 1/1 2/1\n",
+                "m.obj:4",
+                "3 corners",
+            ),
+            ("v 0 0 0\n", "m.obj", "no faces"),
+        ];
+        for (text, at, why) in cases {
+            let e = UvMesh::parse(text, "m.obj").expect_err(text).to_string();
+            assert!(e.contains(at) && e.contains(why), "{text:?}: {e}");
+        }
+    }
+}
