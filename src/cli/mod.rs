@@ -1,6 +1,7 @@
 //! Clap commands: thin wrappers that parse, call the library and report.
 
 pub mod splat;
+pub mod uv;
 
 use clap::{Parser, Subcommand};
 
@@ -18,11 +19,15 @@ pub enum Command {
     /// The Gaussian rasterizer on its own.
     #[command(subcommand)]
     Splat(splat::SplatCommand),
+    /// UV layouts of meshes.
+    #[command(subcommand)]
+    Uv(uv::UvCommand),
 }
 
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Splat(c) => splat::run(c),
+        Command::Uv(c) => uv::run(c),
     }
 }

@@ -2,6 +2,7 @@
 //! per-frame geometry (position map, per-face frames).
 
 pub mod frames;
+pub mod inspect;
 pub mod layout;
 pub mod samples;
 
