@@ -31,7 +31,11 @@ fn inspect_writes_pictures_and_counts_gaussians() {
         .output()
         .expect("run");
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "{stdout} {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "{stdout} {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let want = Topology::new(&UvMesh::load(&obj).expect("load"), 64, 48)
         .expect("topology")
         .len();
