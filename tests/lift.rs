@@ -446,30 +446,37 @@ fn wrong_shapes_are_rejected() {
     assert!(e.contains("vertices"), "{e}");
 }
 
-/// The operator on wgpu (lavapipe here) against the reference on the same device. Until the
-/// CubeCL kernels exist, the wgpu implementation is the fused CPU code behind a host round
-/// trip; this checks the wiring (device placement, shapes, autodiff) end to end.
+/// The CubeCL kernels on wgpu (lavapipe here) against the fused CPU code (every mode and
+/// frame, values and gradients, with one zero-area face) and, for one combination, against
+/// the reference on wgpu.
 #[test]
-fn wgpu_matches_reference_on_wgpu() {
-    let device = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff();
+fn wgpu_matches_cpu_and_reference() {
+    let wgpu = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff();
     let mesh = curved_mesh(4);
     let local = random_local(16, 50);
-    let verts = perturbed_vertices(&mesh, 51, 0.02);
-    for (mode, frame) in [COMBOS[0], COMBOS[3]] {
-        let p = params(&mesh, 16, 16, mode, frame);
-        let get = |reference: bool| {
+    let smooth = perturbed_vertices(&mesh, 51, 0.02);
+    // The same with one zero-area face, so the kernels' guards are exercised too.
+    let mut collapsed = smooth.clone();
+    let f3 = mesh.faces[3];
+    for k in 1..3 {
+        for c in 0..3 {
+            collapsed[3 * f3[k] as usize + c] = collapsed[3 * f3[0] as usize + c];
+        }
+    }
+    for (label, verts) in [("smooth", &smooth), ("zero-area face", &collapsed)] {
+        let get = |p: &LiftParams, device: &Device, reference: bool| {
             let r = p.topology.res();
-            let lt = Tensor::<3>::from_data(TensorData::new(local.clone(), [14, r, r]), &device)
+            let lt = Tensor::<3>::from_data(TensorData::new(local.clone(), [14, r, r]), device)
                 .require_grad();
             let vt = Tensor::<2>::from_data(
                 TensorData::new(verts.clone(), [p.topology.num_vertices, 3]),
-                &device,
+                device,
             )
             .require_grad();
             let out = if reference {
-                lift::lift_reference(lt.clone(), vt.clone(), &p)
+                lift::lift_reference(lt.clone(), vt.clone(), p)
             } else {
-                lift::lift(lt.clone(), vt.clone(), &p)
+                lift::lift(lt.clone(), vt.clone(), p)
             }
             .expect("valid inputs");
             let packed = packed(&out);
@@ -480,15 +487,28 @@ fn wgpu_matches_reference_on_wgpu() {
                 vt.grad(&grads).map(host).unwrap_or_default(),
             )
         };
-        let (f, r) = (get(false), get(true));
-        let (ev, el, eg) = (
-            max_rel(&f.0, &r.0),
-            max_rel(&f.1, &r.1),
-            max_rel(&f.2, &r.2),
-        );
-        println!(
-            "wgpu {mode:?}/{frame:?}: values {ev:.2e} | d local {el:.2e} | d vertices {eg:.2e}"
-        );
-        assert!(ev < 1e-4 && el < 1e-3 && eg < 1e-3, "{ev} {el} {eg}");
+        for (i, (mode, frame)) in COMBOS.into_iter().enumerate() {
+            let p = params(&mesh, 16, 16, mode, frame);
+            let g = get(&p, &wgpu, false);
+            let mut against = vec![("cpu", get(&p, &ndarray(), false))];
+            if i == 0 {
+                against.push(("reference on wgpu", get(&p, &wgpu, true)));
+            }
+            for (name, w) in against {
+                let (ev, el, eg) = (
+                    max_rel(&g.0, &w.0),
+                    max_rel(&g.1, &w.1),
+                    max_rel(&g.2, &w.2),
+                );
+                println!(
+                    "{label}: wgpu vs {name} {mode:?}/{frame:?}: values {ev:.2e} | d local {el:.2e} | d vertices {eg:.2e}"
+                );
+                assert!(g.0.iter().chain(&g.1).chain(&g.2).all(|v| v.is_finite()));
+                assert!(
+                    ev < 1e-5 && el < 1e-4 && eg < 1e-4,
+                    "{name}: {ev} {el} {eg}"
+                );
+            }
+        }
     }
 }

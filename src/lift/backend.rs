@@ -22,7 +22,7 @@ use burn::backend::{
 use burn::tensor::{Shape, TensorData};
 
 use crate::kernels::lift::constants::{LOCAL_CHANNELS, OUT_CHANNELS};
-use crate::lift::{LiftParams, cpu};
+use crate::lift::{LiftParams, cpu, gpu};
 use crate::splat::backend::HostIo;
 
 /// Gradients of a lift's two inputs.
@@ -120,9 +120,27 @@ macro_rules! host_lift_backend {
     )*};
 }
 
-impl HostIo for Cube {}
+host_lift_backend!(NdArray, Flex);
 
-host_lift_backend!(NdArray, Flex, Cube);
+impl LiftBackend for Cube {
+    fn lift(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> FloatTensor<Self> {
+        gpu::forward(local, vertices, &params)
+    }
+
+    fn lift_backward(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        grad_out: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> LiftGradients<Self> {
+        let (local, vertices) = gpu::backward(local, vertices, grad_out, &params);
+        LiftGradients { local, vertices }
+    }
+}
 
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.

@@ -14,7 +14,9 @@
 
 pub mod backend;
 pub mod cpu;
+pub mod gpu;
 pub mod reference;
+pub mod tables;
 pub mod transform;
 
 use std::sync::Arc;
@@ -41,12 +43,14 @@ pub enum LiftMode {
 
 /// A topology's texel set-up, computed once: the mesh's faces, its UV layout at `R` and the
 /// kept samples of the `S x S` grid.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct Topology {
     pub faces: Vec<[u32; 3]>,
     pub num_vertices: usize,
     pub layout: UvLayout,
     pub samples: SampleGrid,
+    /// Index tables of the GPU implementation, built on first use.
+    gpu_tables: std::sync::OnceLock<tables::GpuTables>,
 }
 
 impl Topology {
@@ -66,7 +70,13 @@ impl Topology {
             num_vertices: mesh.positions.len(),
             layout,
             samples,
+            gpu_tables: std::sync::OnceLock::new(),
         })
+    }
+
+    /// The GPU implementation's index tables (built once).
+    pub fn gpu_tables(&self) -> &tables::GpuTables {
+        self.gpu_tables.get_or_init(|| tables::GpuTables::new(self))
     }
 
     /// Texel resolution R.

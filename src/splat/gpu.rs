@@ -502,7 +502,7 @@ fn bit_length(max_value: u32) -> u32 {
 }
 
 /// A kernel argument over the first `len` elements of `handle` (at least one).
-fn arg(handle: &Handle, len: usize) -> BufferArg {
+pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
     // SAFETY: callers pass the element count the buffer was allocated with (or fewer).
     unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
 }
@@ -549,13 +549,13 @@ impl Frame {
 }
 
 /// The client and device every buffer of one pass lives on, with buffer helpers.
-struct Ctx {
-    client: Client,
-    device: CubeDevice,
+pub(crate) struct Ctx {
+    pub(crate) client: Client,
+    pub(crate) device: CubeDevice,
 }
 
 impl Ctx {
-    fn new(reference: &CubeTensor) -> Self {
+    pub(crate) fn new(reference: &CubeTensor) -> Self {
         Self {
             client: reference.client.clone(),
             device: reference.device.clone(),
@@ -570,7 +570,7 @@ impl Ctx {
     }
 
     /// `tensor` as a contiguous `f32` tensor on this context's device.
-    fn float_input(&self, tensor: CubeTensor) -> CubeTensor {
+    pub(crate) fn float_input(&self, tensor: CubeTensor) -> CubeTensor {
         assert!(
             tensor.device == self.device,
             "all splat inputs must be on the same device"
@@ -604,12 +604,12 @@ impl Ctx {
     }
 
     /// An uninitialised buffer of `len` (at least one) 32-bit words.
-    fn empty(&self, len: usize) -> Handle {
+    pub(crate) fn empty(&self, len: usize) -> Handle {
         self.client.empty(len.max(1) * size_of::<u32>())
     }
 
     /// A zero-filled buffer of `len` (at least one) 32-bit words (`0u32` and `0.0f32`).
-    fn zeros(&self, len: usize) -> Handle {
+    pub(crate) fn zeros(&self, len: usize) -> Handle {
         let handle = self.empty(len);
         let len = len.max(1);
         let (count, dim) = self.elementwise(len);
@@ -799,7 +799,7 @@ impl Ctx {
     }
 
     /// Launch configuration for one thread per element.
-    fn elementwise(&self, len: usize) -> (CubeCount, CubeDim) {
+    pub(crate) fn elementwise(&self, len: usize) -> (CubeCount, CubeDim) {
         let dim = CubeDim::new_1d(ELEMENTWISE_THREADS);
         let count = calculate_cube_count_elemwise(&self.client, len.max(1), dim);
         (count, dim)
@@ -815,7 +815,7 @@ impl Ctx {
     }
 
     /// Wraps a contiguous buffer as a tensor.
-    fn tensor<const D: usize>(
+    pub(crate) fn tensor<const D: usize>(
         &self,
         handle: Handle,
         shape: [usize; D],
