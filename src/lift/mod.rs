@@ -8,9 +8,10 @@
 //!   sample is lifted with the one face it falls in.
 //!
 //! Implementations, selected by backend through [`LiftBackend`]: the fused CPU code
-//! ([`cpu`], ndarray and flex) and the reference in plain burn tensor ops ([`reference`],
-//! any backend, differentiated by burn's autodiff). Both compute the same function; tests
-//! compare them in values and gradients.
+//! ([`cpu`], ndarray and flex), the CubeCL kernels ([`gpu`], wgpu), both with handwritten
+//! backward passes, and the reference in plain burn tensor ops ([`reference`], any backend,
+//! differentiated by burn's autodiff). All compute the same function; tests compare them in
+//! values and gradients.
 
 pub mod backend;
 pub mod cpu;

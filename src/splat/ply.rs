@@ -77,23 +77,7 @@ pub fn cov6_from_quat_scale(q: [f32; 4], s: [f32; 3]) -> [f32; 6] {
     } else {
         [1.0, 0.0, 0.0, 0.0]
     };
-    let r = [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ];
+    let r = crate::lift::transform::rotation(&[w, x, y, z]);
     let s2 = [s[0] * s[0], s[1] * s[1], s[2] * s[2]];
     let e = |i: usize, j: usize| (0..3).map(|k| r[i][k] * s2[k] * r[j][k]).sum::<f32>();
     [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]

@@ -228,6 +228,48 @@ mod tests {
         }
     }
 
+    /// A flat mesh whose positions equal its UVs (z = 0): the position map at a covered
+    /// texel is the texel centre's UV, and zero elsewhere.
+    #[test]
+    fn position_map_interpolates_the_face() {
+        use crate::mesh::UvMesh;
+        use crate::texel::UvLayout;
+        let uvs = [[0.1f32, 0.1], [0.9, 0.2], [0.3, 0.8]];
+        let m = UvMesh {
+            uvs: uvs.to_vec(),
+            positions: uvs.iter().map(|t| [t[0], t[1], 0.0]).collect(),
+            faces: vec![[0, 1, 2]],
+            uv_faces: vec![[0, 1, 2]],
+        };
+        let r = 16;
+        let layout = UvLayout::new(&m, r).expect("layout");
+        let p = position_map(&layout, &m.positions);
+        let mut covered = 0;
+        for j in 0..r {
+            for i in 0..r {
+                let t = j * r + i;
+                if layout.face[t].is_some() {
+                    covered += 1;
+                    let want = [
+                        (i as f32 + 0.5) / r as f32,
+                        (j as f32 + 0.5) / r as f32,
+                        0.0,
+                    ];
+                    for c in 0..3 {
+                        assert!(
+                            (p[t][c] - want[c]).abs() < 1e-6,
+                            "texel ({i}, {j}): {:?}",
+                            p[t]
+                        );
+                    }
+                } else {
+                    assert_eq!(p[t], [0.0; 3]);
+                }
+            }
+        }
+        assert!(covered > 30);
+    }
+
     #[test]
     fn degenerate_faces_are_finite() {
         for v in [

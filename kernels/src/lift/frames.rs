@@ -6,7 +6,8 @@
 
 use cubecl::prelude::*;
 
-use super::math::{face_frame, load3, store_m3};
+use super::math::{face_frame, store_m3};
+use super::transform::face_vertices;
 
 /// See the module documentation.
 #[cube(launch_unchecked)]
@@ -22,8 +23,10 @@ pub fn face_frames(
         terminate!();
     }
     let fi = f as usize;
-    let v0 = load3(vertices, faces[fi * 3] as usize * 3);
-    let v1 = load3(vertices, faces[fi * 3 + 1] as usize * 3);
-    let v2 = load3(vertices, faces[fi * 3 + 2] as usize * 3);
-    store_m3(frames, fi * 9, face_frame(v0, v1, v2, scaled_rotation));
+    let t = face_vertices(vertices, faces, fi);
+    store_m3(
+        frames,
+        fi * 9,
+        face_frame(t.v0, t.v1, t.v2, scaled_rotation),
+    );
 }

@@ -31,6 +31,35 @@ pub fn local_at(local: &[f32], r: u32, c: u32, local_row: u32, local_ch: u32) ->
     local[(r * local_row + c * local_ch) as usize]
 }
 
+/// Channels `c0..c0 + 3` of row `r` as a vector.
+#[cube]
+pub fn local_v3(local: &[f32], r: u32, c0: u32, local_row: u32, local_ch: u32) -> V3 {
+    v3(
+        local_at(local, r, c0, local_row, local_ch),
+        local_at(local, r, c0 + 1, local_row, local_ch),
+        local_at(local, r, c0 + 2, local_row, local_ch),
+    )
+}
+
+/// The three vertices of face `fi`.
+#[derive(CubeType, Clone, Copy)]
+#[expand(derive(Clone, Copy))]
+pub struct Tri {
+    pub v0: V3,
+    pub v1: V3,
+    pub v2: V3,
+}
+
+/// Loads face `fi`'s vertices.
+#[cube]
+pub fn face_vertices(vertices: &[f32], faces: &[u32], fi: usize) -> Tri {
+    Tri {
+        v0: load3(vertices, faces[fi * 3] as usize * 3),
+        v1: load3(vertices, faces[fi * 3 + 1] as usize * 3),
+        v2: load3(vertices, faces[fi * 3 + 2] as usize * 3),
+    }
+}
+
 /// The frame of row `r`.
 #[cube]
 pub fn row_frame(frames: &[f32], frame_of_row: &[u32], r: u32) -> M3 {
@@ -71,11 +100,8 @@ pub fn factor(local: &[f32], r: u32, local_row: u32, local_ch: u32, j: M3) -> Fa
         y: local_at(local, r, LOCAL_QUAT as u32 + 2, local_row, local_ch),
         z: local_at(local, r, LOCAL_QUAT as u32 + 3, local_row, local_ch),
     };
-    let s = v3(
-        local_at(local, r, LOCAL_LOG_SCALE as u32, local_row, local_ch).exp(),
-        local_at(local, r, LOCAL_LOG_SCALE as u32 + 1, local_row, local_ch).exp(),
-        local_at(local, r, LOCAL_LOG_SCALE as u32 + 2, local_row, local_ch).exp(),
-    );
+    let ls = local_v3(local, r, LOCAL_LOG_SCALE as u32, local_row, local_ch);
+    let s = v3(ls.x.exp(), ls.y.exp(), ls.z.exp());
     let rot = rotation(q);
     Factor {
         a: scale_cols(mat_mul(j, rot), s),
@@ -117,11 +143,7 @@ pub fn lift_rows(
         bary[ri * 3 + 2],
     );
     let anchor = add(add(p0, p1), p2);
-    let mu = v3(
-        local_at(local, r, LOCAL_MEAN as u32, local_row, local_ch),
-        local_at(local, r, LOCAL_MEAN as u32 + 1, local_row, local_ch),
-        local_at(local, r, LOCAL_MEAN as u32 + 2, local_row, local_ch),
-    );
+    let mu = local_v3(local, r, LOCAL_MEAN as u32, local_row, local_ch);
     let mean = add(mat_vec(j, mu), anchor);
     let f = factor(local, r, local_row, local_ch, j);
     let a0 = row0(f.a);

@@ -7,7 +7,8 @@
 
 use cubecl::prelude::*;
 
-use crate::lift::math::{face_frame_backward, load_m3, load3};
+use crate::lift::math::{face_frame_backward, load_m3};
+use crate::lift::transform::face_vertices;
 
 /// See the module documentation.
 #[cube(launch_unchecked)]
@@ -24,10 +25,8 @@ pub fn face_frames_backward(
         terminate!();
     }
     let fi = f as usize;
-    let v0 = load3(vertices, faces[fi * 3] as usize * 3);
-    let v1 = load3(vertices, faces[fi * 3 + 1] as usize * 3);
-    let v2 = load3(vertices, faces[fi * 3 + 2] as usize * 3);
-    let g = face_frame_backward(v0, v1, v2, load_m3(dframes, fi * 9), scaled_rotation);
+    let t = face_vertices(vertices, faces, fi);
+    let g = face_frame_backward(t.v0, t.v1, t.v2, load_m3(dframes, fi * 9), scaled_rotation);
     let base = fi * 9;
     dcorners[base] = g.d0.x;
     dcorners[base + 1] = g.d0.y;

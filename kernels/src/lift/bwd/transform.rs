@@ -23,7 +23,7 @@ use crate::lift::math::{
     col0, col1, col2, dot, from_cols, mat_add, mat_mul, mat_vec, rotation_backward, scale,
     scale_cols, store_m3, transpose, v3,
 };
-use crate::lift::transform::{factor, local_at, row_frame};
+use crate::lift::transform::{factor, local_at, local_v3, row_frame};
 
 #[cube]
 fn write_local(dlocal: &mut [f32], r: u32, c: u32, dl_row: u32, dl_ch: u32, v: f32) {
@@ -55,11 +55,7 @@ pub fn lift_rows_backward(
     let base = ri * OUT_CHANNELS;
     let j = row_frame(frames, frame_of_row, r);
     let f = factor(local, r, local_row, local_ch, j);
-    let mu = v3(
-        local_at(local, r, LOCAL_MEAN as u32, local_row, local_ch),
-        local_at(local, r, LOCAL_MEAN as u32 + 1, local_row, local_ch),
-        local_at(local, r, LOCAL_MEAN as u32 + 2, local_row, local_ch),
-    );
+    let mu = local_v3(local, r, LOCAL_MEAN as u32, local_row, local_ch);
     let dmean = v3(
         dout[base + OUT_MEAN],
         dout[base + OUT_MEAN + 1],
