@@ -446,9 +446,9 @@ fn wrong_shapes_are_rejected() {
     assert!(e.contains("vertices"), "{e}");
 }
 
-/// The CubeCL kernels on wgpu (lavapipe here) against the fused CPU code (every mode and
-/// frame, values and gradients, with one zero-area face) and, for one combination, against
-/// the reference on wgpu.
+/// The CubeCL kernels on wgpu (lavapipe here) against the fused CPU code and the reference
+/// on ndarray (every mode and frame, values and gradients, also with one zero-area face) and,
+/// for one combination, against the reference on wgpu.
 #[test]
 fn wgpu_matches_cpu_and_reference() {
     let wgpu = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff();
@@ -490,7 +490,10 @@ fn wgpu_matches_cpu_and_reference() {
         for (i, (mode, frame)) in COMBOS.into_iter().enumerate() {
             let p = params(&mesh, 16, 16, mode, frame);
             let g = get(&p, &wgpu, false);
-            let mut against = vec![("cpu", get(&p, &ndarray(), false))];
+            let mut against = vec![
+                ("cpu", get(&p, &ndarray(), false)),
+                ("reference on ndarray", get(&p, &ndarray(), true)),
+            ];
             if i == 0 {
                 against.push(("reference on wgpu", get(&p, &wgpu, true)));
             }
