@@ -1,4 +1,5 @@
-//! File formats shared by the commands: `.npy` arrays and PNG images.
+//! File formats shared by the commands: `.npy` and `.npz` arrays and PNG images.
 
 pub mod image;
 pub mod npy;
+pub mod npz;
