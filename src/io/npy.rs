@@ -19,29 +19,34 @@ pub fn read(path: &Path) -> Result<Array> {
     let what = path.display().to_string();
     let npy = npyz::NpyFile::new(&bytes[..])
         .map_err(|e| Error::invalid(&what, "header", format!("not a .npy file: {e}")))?;
+    floats(npy, &what, "data")
+}
+
+/// The values of an open `.npy` (float32, or float64 converted) with its shape; errors
+/// name `what` and `field`.
+pub fn floats<R: std::io::Read>(npy: npyz::NpyFile<R>, what: &str, field: &str) -> Result<Array> {
     let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
-    let dtype = npy.dtype();
-    let descr = dtype.descr();
+    let descr = npy.dtype().descr();
+    let bad =
+        |e: std::io::Error| Error::invalid(what, field, format!("truncated or unreadable: {e}"));
     let data: Vec<f32> = match descr.trim_matches('\'') {
-        "<f4" => npy
-            .into_vec::<f32>()
-            .map_err(|e| Error::invalid(&what, "data", format!("truncated or unreadable: {e}")))?,
+        "<f4" => npy.into_vec::<f32>().map_err(bad)?,
         "<f8" => npy
             .into_vec::<f64>()
-            .map_err(|e| Error::invalid(&what, "data", format!("truncated or unreadable: {e}")))?
+            .map_err(bad)?
             .into_iter()
             .map(|v| v as f32)
             .collect(),
         other => {
             return Err(Error::invalid(
-                &what,
-                "dtype",
-                format!("expected little-endian float32 or float64, got {other}"),
+                what,
+                field,
+                format!("expected little-endian float32 or float64, got dtype {other}"),
             ));
         }
     };
     if data.len() != shape.iter().product::<usize>() {
-        return Err(Error::invalid(&what, "data", "truncated"));
+        return Err(Error::invalid(what, field, "truncated"));
     }
     Ok(Array { shape, data })
 }

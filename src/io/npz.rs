@@ -62,30 +62,7 @@ impl Npz {
     pub fn floats(&mut self, name: &str) -> Result<Array> {
         let what = self.what();
         let npy = self.npy(name)?;
-        let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
-        let descr = npy.dtype().descr();
-        let bad = |e: std::io::Error| {
-            Error::invalid(&what, name, format!("truncated or unreadable: {e}"))
-        };
-        let data: Vec<f32> = match descr.trim_matches('\'') {
-            "<f4" => npy.into_vec::<f32>().map_err(bad)?,
-            "<f8" => npy
-                .into_vec::<f64>()
-                .map_err(bad)?
-                .into_iter()
-                .map(|v| v as f32)
-                .collect(),
-            other => {
-                return Err(Error::invalid(
-                    &what,
-                    name,
-                    format!("expected float32 or float64, got dtype {other}"),
-                ));
-            }
-        };
-        if data.len() != shape.iter().product::<usize>() {
-            return Err(Error::invalid(&what, name, "truncated"));
-        }
+        let Array { shape, data } = crate::io::npy::floats(npy, &what, name)?;
         if let Some(i) = data.iter().position(|v| !v.is_finite()) {
             return Err(Error::invalid(
                 &what,
