@@ -141,47 +141,48 @@ impl NpzOut {
         let io = |e: std::io::Error| Error::io(&tmp, e);
         {
             let mut w = npyz::npz::NpzWriter::create(&tmp).map_err(io)?;
-            let opts = npyz::zip::write::FileOptions::default;
             for (name, shape, data) in &self.floats {
-                check_len(path, name, shape, data.len())?;
-                let s: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
-                let mut a = w
-                    .array::<f32>(name, opts())
-                    .map_err(io)?
-                    .default_dtype()
-                    .shape(&s)
-                    .begin_nd()
-                    .map_err(io)?;
-                a.extend(data.iter().copied()).map_err(io)?;
-                a.finish().map_err(io)?;
+                put(&mut w, path, &tmp, name, shape, data)?;
             }
             for (name, shape, data) in &self.ints {
-                check_len(path, name, shape, data.len())?;
-                let s: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
-                let mut a = w
-                    .array::<i64>(name, opts())
-                    .map_err(io)?
-                    .default_dtype()
-                    .shape(&s)
-                    .begin_nd()
-                    .map_err(io)?;
-                a.extend(data.iter().copied()).map_err(io)?;
-                a.finish().map_err(io)?;
+                put(&mut w, path, &tmp, name, shape, data)?;
             }
         }
         std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
     }
 }
 
-fn check_len(path: &Path, name: &str, shape: &[usize], len: usize) -> Result<()> {
-    if shape.iter().product::<usize>() != len {
+/// Appends one array `name` to the archive being written at `tmp` (for `path`).
+fn put<T, W>(
+    w: &mut npyz::npz::NpzWriter<W>,
+    path: &Path,
+    tmp: &Path,
+    name: &str,
+    shape: &[usize],
+    data: &[T],
+) -> Result<()>
+where
+    T: npyz::AutoSerialize + Copy,
+    W: std::io::Write + std::io::Seek,
+{
+    if shape.iter().product::<usize>() != data.len() {
         return Err(Error::invalid(
             path.display().to_string(),
             name,
-            format!("shape {shape:?} does not hold {len} values"),
+            format!("shape {shape:?} does not hold {} values", data.len()),
         ));
     }
-    Ok(())
+    let io = |e: std::io::Error| Error::io(tmp, e);
+    let s: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
+    let mut a = w
+        .array::<T>(name, npyz::zip::write::FileOptions::default())
+        .map_err(io)?
+        .default_dtype()
+        .shape(&s)
+        .begin_nd()
+        .map_err(io)?;
+    a.extend(data.iter().copied()).map_err(io)?;
+    a.finish().map_err(io)
 }
 
 #[cfg(test)]
