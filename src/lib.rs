@@ -1,11 +1,12 @@
 //! texavatars: hybrid texel-3D Gaussian head avatars (TexAvatars, 3DV 2026) on burn.
 //!
-//! The modules follow the data flow: [`head`] (FLAME-compatible model, skinning) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps,
+//! The modules follow the data flow: [`data`] (VHAP export) → [`head`] (FLAME-compatible model, skinning) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps,
 //! sample grid, per-face frames) → [`lift`] (local texel attributes to 3D Gaussians) →
 //! [`camera`] → [`splat`] (the differentiable Gaussian rasterizer).
 
 pub mod camera;
 pub mod cli;
+pub mod data;
 pub mod device;
 pub mod error;
 pub mod head;

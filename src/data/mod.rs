@@ -1,0 +1,3 @@
+//! Datasets: the VHAP / GaussianAvatars export format.
+
+pub mod vhap;

@@ -1,0 +1,222 @@
+//! VHAP's NeRSemble export for GaussianAvatars: `transforms_{train,val,test}.json`.
+//!
+//! Top level: `cx, cy, fl_x, fl_y, h, w` (defaults for every frame), optional
+//! `camera_angle_x/y`, `timestep_indices`, `camera_indices`, and `frames`. Per frame:
+//! `timestep_index`, `camera_index`, `file_path`, optional `fg_mask_path` and
+//! `flame_param_path`, `transform_matrix` (camera-to-world, OpenGL axes: x right, y up,
+//! z backward) and optional per-frame `cx, cy, fl_x, fl_y, h, w`. Paths are relative to the
+//! JSON's folder; combined multi-sequence sets use `../<seq>/...`, which is kept as is.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::camera::Camera;
+use crate::error::{Error, Result};
+
+#[derive(Debug, Deserialize)]
+struct TransformsJson {
+    cx: f32,
+    cy: f32,
+    fl_x: f32,
+    fl_y: f32,
+    h: u32,
+    w: u32,
+    frames: Vec<FrameJson>,
+}
+
+#[derive(Debug, Deserialize)]
+struct FrameJson {
+    timestep_index: usize,
+    camera_index: usize,
+    file_path: String,
+    fg_mask_path: Option<String>,
+    flame_param_path: Option<String>,
+    transform_matrix: [[f32; 4]; 4],
+    cx: Option<f32>,
+    cy: Option<f32>,
+    fl_x: Option<f32>,
+    fl_y: Option<f32>,
+    h: Option<u32>,
+    w: Option<u32>,
+}
+
+/// One frame of a VHAP export: which timestep and camera, where its files are, and its
+/// camera in this project's convention (OpenCV world-to-camera).
+#[derive(Clone, Debug, PartialEq)]
+pub struct VhapFrame {
+    pub timestep: usize,
+    pub camera_index: usize,
+    pub image: PathBuf,
+    pub mask: Option<PathBuf>,
+    pub flame_param: Option<PathBuf>,
+    pub camera: Camera,
+}
+
+/// OpenGL camera-to-world → OpenCV world-to-camera: flip the camera's y and z axes, then
+/// invert the rigid transform.
+pub fn opencv_world_to_camera(c2w_gl: &[[f32; 4]; 4]) -> [[f32; 4]; 4] {
+    // Columns 1 and 2 of the rotation (the camera's y and z axes) change sign.
+    let r: [[f32; 3]; 3] = std::array::from_fn(|i| [c2w_gl[i][0], -c2w_gl[i][1], -c2w_gl[i][2]]);
+    let t = [c2w_gl[0][3], c2w_gl[1][3], c2w_gl[2][3]];
+    let mut w2c = [[0.0f32; 4]; 4];
+    for i in 0..3 {
+        for j in 0..3 {
+            w2c[i][j] = r[j][i];
+        }
+        w2c[i][3] = -(0..3).map(|k| r[k][i] * t[k]).sum::<f32>();
+    }
+    w2c[3][3] = 1.0;
+    w2c
+}
+
+/// Reads a `transforms_*.json`.
+pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
+    let what = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let json: TransformsJson = serde_json::from_str(&text).map_err(|e| {
+        // serde names the missing or mistyped key and the line in its message.
+        Error::invalid(&what, "json", e.to_string())
+    })?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    json.frames
+        .into_iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let field = |name: &str| format!("frames[{i}].{name}");
+            let camera = Camera {
+                width: f.w.unwrap_or(json.w),
+                height: f.h.unwrap_or(json.h),
+                fx: f.fl_x.unwrap_or(json.fl_x),
+                fy: f.fl_y.unwrap_or(json.fl_y),
+                cx: f.cx.unwrap_or(json.cx),
+                cy: f.cy.unwrap_or(json.cy),
+                world_to_camera: opencv_world_to_camera(&f.transform_matrix),
+            };
+            if camera.width == 0 || camera.height == 0 {
+                return Err(Error::invalid(
+                    &what,
+                    field("w/h"),
+                    "image size must be positive",
+                ));
+            }
+            for (name, v) in [("fl_x", camera.fx), ("fl_y", camera.fy)] {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(Error::invalid(
+                        &what,
+                        field(name),
+                        format!("{v} is not a positive focal length"),
+                    ));
+                }
+            }
+            let m = &f.transform_matrix;
+            if m.iter().flatten().any(|v| !v.is_finite()) {
+                return Err(Error::invalid(
+                    &what,
+                    field("transform_matrix"),
+                    "not finite",
+                ));
+            }
+            if (m[3][0].abs() + m[3][1].abs() + m[3][2].abs() + (m[3][3] - 1.0).abs()) > 1e-4 {
+                return Err(Error::invalid(
+                    &what,
+                    field("transform_matrix"),
+                    "last row is not [0, 0, 0, 1]",
+                ));
+            }
+            Ok(VhapFrame {
+                timestep: f.timestep_index,
+                camera_index: f.camera_index,
+                image: dir.join(&f.file_path),
+                mask: f.fg_mask_path.map(|p| dir.join(p)),
+                flame_param: f.flame_param_path.map(|p| dir.join(p)),
+                camera,
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("texavatars-vhap-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&d).expect("dir");
+        d
+    }
+
+    const JSON: &str = r#"{
+        "cx": 275.0, "cy": 401.0, "fl_x": 1000.0, "fl_y": 1001.0, "h": 802, "w": 550,
+        "camera_angle_x": 0.5, "camera_angle_y": 0.7,
+        "timestep_indices": [0, 1], "camera_indices": [8],
+        "frames": [
+            {"timestep_index": 0, "camera_index": 8, "file_path": "images/00000_08.png",
+             "fg_mask_path": "fg_masks/00000_08.png", "flame_param_path": "flame_param/00000.npz",
+             "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,2],[0,0,0,1]],
+             "cx": 275.0, "cy": 401.0, "fl_x": 1000.0, "fl_y": 1001.0, "h": 802, "w": 550},
+            {"timestep_index": 1, "camera_index": 8, "file_path": "../other/images/00001_08.png",
+             "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,2],[0,0,0,1]], "fl_x": 900.0}
+        ]
+    }"#;
+
+    #[test]
+    fn reads_frames_and_converts_cameras() {
+        let d = dir("ok");
+        let p = d.join("transforms_train.json");
+        std::fs::write(&p, JSON).expect("write");
+        let frames = load_transforms(&p).expect("load");
+        assert_eq!(frames.len(), 2);
+        assert_eq!(frames[0].image, d.join("images/00000_08.png"));
+        assert_eq!(frames[0].flame_param, Some(d.join("flame_param/00000.npz")));
+        assert_eq!(frames[1].image, d.join("../other/images/00001_08.png"));
+        assert_eq!(frames[1].mask, None);
+        assert_eq!(frames[1].camera.fx, 900.0);
+        assert_eq!(frames[1].camera.fy, 1001.0);
+        // An OpenGL camera at z = +2 looking down -z sees the origin 2 units in front (OpenCV
+        // +z), with y flipped.
+        let m = frames[0].camera.world_to_camera;
+        let apply = |p: [f32; 3]| -> [f32; 3] {
+            std::array::from_fn(|i| (0..3).map(|k| m[i][k] * p[k]).sum::<f32>() + m[i][3])
+        };
+        assert_eq!(apply([0.0, 0.0, 0.0]), [0.0, 0.0, 2.0]);
+        assert_eq!(apply([0.0, 1.0, 0.0]), [0.0, -1.0, 2.0]);
+        assert_eq!(apply([1.0, 0.0, 0.0]), [1.0, 0.0, 2.0]);
+    }
+
+    #[test]
+    fn bad_files_name_file_and_field() {
+        let d = dir("bad");
+        let cases = [
+            ("missing.json", None, "missing.json"),
+            (
+                "no_cx.json",
+                Some(JSON.replacen("\"cx\": 275.0, \"cy\"", "\"cy\"", 1)),
+                "cx",
+            ),
+            (
+                "trunc.json",
+                Some(JSON[..JSON.len() / 2].to_string()),
+                "trunc.json",
+            ),
+            (
+                "bad_fl.json",
+                Some(JSON.replace("\"fl_x\": 900.0", "\"fl_x\": -1.0")),
+                "frames[1].fl_x",
+            ),
+            (
+                "bad_row.json",
+                Some(JSON.replacen("[0,0,0,1]]", "[0,0,1,1]]", 1)),
+                "frames[0].transform_matrix",
+            ),
+        ];
+        for (name, text, want) in cases {
+            let p = d.join(name);
+            if let Some(t) = text {
+                std::fs::write(&p, t).expect("write");
+            }
+            let e = load_transforms(&p).expect_err(name).to_string();
+            assert!(e.contains(name) && e.contains(want), "{name}: {e}");
+        }
+    }
+}
