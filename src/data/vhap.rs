@@ -6,6 +6,12 @@
 //! `flame_param_path`, `transform_matrix` (camera-to-world, OpenGL axes: x right, y up,
 //! z backward) and optional per-frame `cx, cy, fl_x, fl_y, h, w`. Paths are relative to the
 //! JSON's folder; combined multi-sequence sets use `../<seq>/...`, which is kept as is.
+//!
+//! # The eta side file
+//! The paper's image-derived expression embedding (eta, 128 values) is not part of VHAP's
+//! format. This project keeps it next to each timestep's FLAME parameters:
+//! `flame_param/TTTTT.npz` → `eta/TTTTT.npy`, float32 `[128]`. A missing file means zeros
+//! (as for real captures without an encoder); a present file with another shape is an error.
 
 use std::path::{Path, PathBuf};
 
@@ -51,6 +57,43 @@ pub struct VhapFrame {
     pub mask: Option<PathBuf>,
     pub flame_param: Option<PathBuf>,
     pub camera: Camera,
+}
+
+/// Length of the eta conditioning vector.
+pub const ETA_DIM: usize = 128;
+
+/// Where the eta side file of a timestep lives, given its `flame_param` path.
+pub fn eta_path(flame_param: &Path) -> PathBuf {
+    let stem = flame_param.file_stem().unwrap_or_default();
+    let dir = flame_param
+        .parent()
+        .and_then(Path::parent)
+        .unwrap_or(Path::new("."));
+    dir.join("eta").join(stem).with_extension("npy")
+}
+
+/// The eta vector of a timestep: the side file's 128 values, or zeros when it is absent.
+pub fn load_eta(flame_param: &Path) -> Result<Vec<f32>> {
+    let path = eta_path(flame_param);
+    if !path.exists() {
+        return Ok(vec![0.0; ETA_DIM]);
+    }
+    let a = crate::io::npy::read(&path)?;
+    if a.data.len() != ETA_DIM {
+        return Err(Error::invalid(
+            path.display().to_string(),
+            "eta",
+            format!("shape {:?}, expected [{ETA_DIM}]", a.shape),
+        ));
+    }
+    if a.data.iter().any(|v| !v.is_finite()) {
+        return Err(Error::invalid(
+            path.display().to_string(),
+            "eta",
+            "not finite",
+        ));
+    }
+    Ok(a.data)
 }
 
 /// OpenGL camera-to-world → OpenCV world-to-camera: flip the camera's y and z axes, then
@@ -182,6 +225,21 @@ mod tests {
         assert_eq!(apply([0.0, 0.0, 0.0]), [0.0, 0.0, 2.0]);
         assert_eq!(apply([0.0, 1.0, 0.0]), [0.0, -1.0, 2.0]);
         assert_eq!(apply([1.0, 0.0, 0.0]), [1.0, 0.0, 2.0]);
+    }
+
+    #[test]
+    fn eta_side_file_or_zeros() {
+        let d = dir("eta");
+        let fp = d.join("flame_param").join("00003.npz");
+        assert_eq!(eta_path(&fp), d.join("eta").join("00003.npy"));
+        assert_eq!(load_eta(&fp).expect("absent"), vec![0.0; ETA_DIM]);
+        std::fs::create_dir_all(d.join("eta")).expect("dir");
+        let v: Vec<f32> = (0..ETA_DIM).map(|i| i as f32).collect();
+        crate::io::npy::write(&eta_path(&fp), &[ETA_DIM], &v).expect("write");
+        assert_eq!(load_eta(&fp).expect("present"), v);
+        crate::io::npy::write(&eta_path(&fp), &[2], &[0.0, 1.0]).expect("write");
+        let e = load_eta(&fp).expect_err("shape").to_string();
+        assert!(e.contains("00003.npy") && e.contains("eta"), "{e}");
     }
 
     #[test]
