@@ -11,7 +11,8 @@
 //! `local`: blend → per-sample lift backward → texels, faces and vertices gather from the
 //! samples. Every scatter is a CSR gather: no atomics, deterministic.
 //!
-//! The topology's tables are uploaded on every call (a few MB at R = 512).
+//! The topology's index and CSR tables are uploaded once per device and kept with the
+//! topology ([`BufferCache`]).
 
 use burn::tensor::DType;
 use burn_cubecl::cubecl::prelude::*;
@@ -26,12 +27,32 @@ use texavatars_kernels::lift::frames::face_frames;
 use texavatars_kernels::lift::opacity_grad::opacity_grad;
 use texavatars_kernels::lift::transform::lift_rows;
 
-use crate::lift::tables::Csr;
+use std::sync::{Arc, Mutex};
+
+use burn_cubecl::CubeDevice;
+
+use crate::lift::tables::{Csr, GpuTables};
 use crate::lift::{LiftMode, LiftParams};
 use crate::splat::gpu::{Ctx, arg};
 use crate::texel::FrameKind;
 
+/// A CSR list on the device.
+struct CsrBuf {
+    offsets: Handle,
+    entries: Handle,
+    weights: Handle,
+    targets: usize,
+    len: usize,
+}
+
+/// The topology's tables on one device.
 struct Buffers {
+    texel_from_samples: CsrBuf,
+    face_from_texels: CsrBuf,
+    face_from_samples: CsrBuf,
+    vertex_from_texels: CsrBuf,
+    vertex_from_samples: CsrBuf,
+    vertex_from_corners: CsrBuf,
     faces: Handle,
     texel_frame: Handle,
     texel_corners: Handle,
@@ -43,28 +64,38 @@ struct Buffers {
     sample_bary: Handle,
 }
 
-struct Lifter<'a> {
-    ctx: Ctx,
-    params: &'a LiftParams,
-    rr: usize,
-    n: usize,
-    f: usize,
-    v: usize,
-    scaled: bool,
-    b: Buffers,
+/// Per-device uploads of a topology's tables, kept by the [`crate::lift::Topology`].
+#[derive(Default)]
+pub struct BufferCache(Mutex<Vec<(CubeDevice, Arc<Buffers>)>>);
+
+impl std::fmt::Debug for BufferCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let devices = self.0.lock().map(|c| c.len()).unwrap_or(0);
+        write!(f, "BufferCache({devices} devices)")
+    }
 }
 
-impl<'a> Lifter<'a> {
-    fn new(reference: &CubeTensor, params: &'a LiftParams) -> Self {
-        let ctx = Ctx::new(reference);
-        let t = &params.topology;
-        let tab = t.gpu_tables();
+impl Buffers {
+    fn upload(ctx: &Ctx, tab: &GpuTables) -> Self {
         let u = |v: &[u32]| ctx.client.create_from_slice(u32::as_bytes(&nonempty(v, 0)));
         let fl = |v: &[f32]| {
             ctx.client
                 .create_from_slice(f32::as_bytes(&nonempty(v, 0.0)))
         };
-        let b = Buffers {
+        let csr = |c: &Csr| CsrBuf {
+            offsets: u(&c.offsets),
+            entries: u(&c.entries),
+            weights: fl(&c.weights),
+            targets: c.offsets.len() - 1,
+            len: c.entries.len(),
+        };
+        Buffers {
+            texel_from_samples: csr(&tab.texel_from_samples),
+            face_from_texels: csr(&tab.face_from_texels),
+            face_from_samples: csr(&tab.face_from_samples),
+            vertex_from_texels: csr(&tab.vertex_from_texels),
+            vertex_from_samples: csr(&tab.vertex_from_samples),
+            vertex_from_corners: csr(&tab.vertex_from_corners),
             faces: u(&tab.faces),
             texel_frame: u(&tab.texel_frame),
             texel_corners: u(&tab.texel_corners),
@@ -74,6 +105,35 @@ impl<'a> Lifter<'a> {
             sample_frame: u(&tab.sample_frame),
             sample_corners: u(&tab.sample_corners),
             sample_bary: fl(&tab.sample_bary),
+        }
+    }
+}
+
+struct Lifter<'a> {
+    ctx: Ctx,
+    params: &'a LiftParams,
+    rr: usize,
+    n: usize,
+    f: usize,
+    v: usize,
+    scaled: bool,
+    b: Arc<Buffers>,
+}
+
+impl<'a> Lifter<'a> {
+    fn new(reference: &CubeTensor, params: &'a LiftParams) -> Self {
+        let ctx = Ctx::new(reference);
+        let t = &params.topology;
+        let b = {
+            let mut cache = t.gpu_cache.0.lock().unwrap_or_else(|e| e.into_inner());
+            match cache.iter().find(|(d, _)| *d == ctx.device) {
+                Some((_, b)) => b.clone(),
+                None => {
+                    let b = Arc::new(Buffers::upload(&ctx, t.gpu_tables()));
+                    cache.push((ctx.device.clone(), b.clone()));
+                    b
+                }
+            }
         };
         Lifter {
             rr: t.res() * t.res(),
@@ -183,7 +243,7 @@ impl<'a> Lifter<'a> {
     #[allow(clippy::too_many_arguments)]
     fn gather(
         &self,
-        csr: &Csr,
+        csr: &CsrBuf,
         values: &Handle,
         values_len: usize,
         (val_row, val_offset): (u32, u32),
@@ -193,11 +253,8 @@ impl<'a> Lifter<'a> {
         channels: usize,
         accumulate: bool,
     ) {
-        let targets = csr.offsets.len() - 1;
+        let targets = csr.targets;
         let c = &self.ctx.client;
-        let offsets = c.create_from_slice(u32::as_bytes(&csr.offsets));
-        let entries = c.create_from_slice(u32::as_bytes(&nonempty(&csr.entries, 0)));
-        let weights = c.create_from_slice(f32::as_bytes(&nonempty(&csr.weights, 0.0)));
         let (count, dim) = self.ctx.elementwise(targets);
         // SAFETY: buffer lengths as passed; the kernel bounds-checks the target count and
         // reads entries only within `offsets`.
@@ -209,9 +266,9 @@ impl<'a> Lifter<'a> {
                 arg(values, values_len),
                 val_row,
                 val_offset,
-                arg(&offsets, targets + 1),
-                arg(&entries, csr.entries.len()),
-                arg(&weights, csr.weights.len()),
+                arg(&csr.offsets, targets + 1),
+                arg(&csr.entries, csr.len),
+                arg(&csr.weights, csr.len),
                 arg(out, out_len),
                 out_row,
                 out_ch,
@@ -299,7 +356,6 @@ impl<'a> Lifter<'a> {
     }
 
     fn backward(&self, local: &Handle, vertices: &Handle, dout: &Handle) -> (Handle, Handle) {
-        let tab = self.params.topology.gpu_tables();
         let frames = self.frames(vertices);
         let lc = LOCAL_CHANNELS;
         let oc = OUT_CHANNELS;
@@ -335,7 +391,7 @@ impl<'a> Lifter<'a> {
                 }
                 let dpay = self.ctx.empty(self.rr * oc);
                 self.gather(
-                    &tab.texel_from_samples,
+                    &self.b.texel_from_samples,
                     &d,
                     self.n * oc,
                     (oc as u32, 0),
@@ -357,7 +413,7 @@ impl<'a> Lifter<'a> {
                     true,
                 );
                 self.gather(
-                    &tab.face_from_texels,
+                    &self.b.face_from_texels,
                     &dtex_frames,
                     self.rr * 9,
                     (9, 0),
@@ -368,7 +424,7 @@ impl<'a> Lifter<'a> {
                     false,
                 );
                 self.gather(
-                    &tab.vertex_from_texels,
+                    &self.b.vertex_from_texels,
                     &dpay,
                     self.rr * oc,
                     (oc as u32, 0),
@@ -394,7 +450,7 @@ impl<'a> Lifter<'a> {
                     false,
                 );
                 self.gather(
-                    &tab.texel_from_samples,
+                    &self.b.texel_from_samples,
                     &dl,
                     self.n * lc,
                     (lc as u32, 0),
@@ -405,7 +461,7 @@ impl<'a> Lifter<'a> {
                     false,
                 );
                 self.gather(
-                    &tab.face_from_samples,
+                    &self.b.face_from_samples,
                     &dsample_frames,
                     self.n * 9,
                     (9, 0),
@@ -416,7 +472,7 @@ impl<'a> Lifter<'a> {
                     false,
                 );
                 self.gather(
-                    &tab.vertex_from_samples,
+                    &self.b.vertex_from_samples,
                     dout,
                     self.n * oc,
                     (oc as u32, 0),
@@ -445,7 +501,7 @@ impl<'a> Lifter<'a> {
             );
         }
         self.gather(
-            &tab.vertex_from_corners,
+            &self.b.vertex_from_corners,
             &dcorners,
             self.f * 9,
             (3, 0),

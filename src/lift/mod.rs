@@ -52,6 +52,8 @@ pub struct Topology {
     pub samples: SampleGrid,
     /// Index tables of the GPU implementation, built on first use.
     gpu_tables: std::sync::OnceLock<tables::GpuTables>,
+    /// Those tables uploaded, per device (shared by clones of the topology).
+    gpu_cache: Arc<gpu::BufferCache>,
 }
 
 impl Topology {
@@ -72,6 +74,7 @@ impl Topology {
             layout,
             samples,
             gpu_tables: std::sync::OnceLock::new(),
+            gpu_cache: Arc::default(),
         })
     }
 
