@@ -19,11 +19,10 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
 };
-use burn::tensor::{Shape, TensorData};
 
 use crate::kernels::lift::constants::{LOCAL_CHANNELS, OUT_CHANNELS};
 use crate::lift::{LiftParams, cpu, gpu};
-use crate::splat::backend::HostIo;
+use crate::splat::backend::{HostIo, floats};
 
 /// Gradients of a lift's two inputs.
 ///
@@ -53,10 +52,6 @@ pub trait LiftBackend: Backend {
         grad_out: FloatTensor<Self>,
         params: LiftParams,
     ) -> LiftGradients<Self>;
-}
-
-fn floats<B: Backend>(v: Vec<f32>, shape: &[usize], device: &B::Device) -> FloatTensor<B> {
-    B::float_from_data(TensorData::new(v, Shape::from(shape.to_vec())), device)
 }
 
 fn host_lift<H: HostIo>(

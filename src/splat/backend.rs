@@ -183,7 +183,12 @@ fn read_ints<B: Backend>(t: IntTensor<B>) -> Vec<u32> {
     }
 }
 
-fn floats<B: Backend>(v: Vec<f32>, shape: &[usize], device: &B::Device) -> FloatTensor<B> {
+/// A host vector as a float tensor of `shape` on `device`.
+pub(crate) fn floats<B: Backend>(
+    v: Vec<f32>,
+    shape: &[usize],
+    device: &B::Device,
+) -> FloatTensor<B> {
     B::float_from_data(TensorData::new(v, Shape::from(shape.to_vec())), device)
 }
 
