@@ -1,5 +1,6 @@
 //! Clap commands: thin wrappers that parse, call the library and report.
 
+pub mod head;
 pub mod splat;
 pub mod uv;
 
@@ -16,6 +17,9 @@ pub struct Cli {
 /// Top-level commands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Head models: import the default head, print a summary.
+    #[command(subcommand)]
+    Head(head::HeadCommand),
     /// The Gaussian rasterizer on its own.
     #[command(subcommand)]
     Splat(splat::SplatCommand),
@@ -27,6 +31,7 @@ pub enum Command {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Head(c) => head::run(c),
         Command::Splat(c) => splat::run(c),
         Command::Uv(c) => uv::run(c),
     }

@@ -30,6 +30,15 @@ pub struct HeadPose {
 }
 
 impl HeadPose {
+    /// The rest pose of `model`: zero coefficients of the model's sizes, no rotation.
+    pub fn neutral(model: &HeadModel) -> Self {
+        HeadPose {
+            shape: vec![0.0; model.num_shape],
+            expr: vec![0.0; model.num_expr],
+            ..Default::default()
+        }
+    }
+
     /// Axis-angle per joint: global, neck, jaw, left eye, right eye.
     pub fn joint_rotations(&self) -> [[f32; 3]; 5] {
         [
@@ -90,6 +99,74 @@ fn apply(a: &M3, v: [f64; 3]) -> [f64; 3] {
     std::array::from_fn(|i| (0..3).map(|k| a[i][k] * v[k]).sum())
 }
 
+/// Template plus static offsets plus shape and expression blendshapes (step 1 of LBS).
+/// Coefficients beyond the model's are ignored (`lbs` rejects them).
+fn shaped_vertices(model: &HeadModel, pose: &HeadPose) -> Vec<[f64; 3]> {
+    let v = model.num_vertices();
+    let k = model.num_shape + model.num_expr;
+    let mut coef = vec![0.0f64; k];
+    for (i, &c) in pose.shape.iter().take(model.num_shape).enumerate() {
+        coef[i] = f64::from(c);
+    }
+    for (i, &c) in pose.expr.iter().take(model.num_expr).enumerate() {
+        coef[model.num_shape + i] = f64::from(c);
+    }
+    let static_offset = pose.static_offset.as_ref().filter(|o| o.len() == v);
+    let active: Vec<(usize, f64)> = coef
+        .iter()
+        .copied()
+        .enumerate()
+        .filter(|(_, c)| *c != 0.0)
+        .collect();
+    (0..v)
+        .map(|i| {
+            let mut p = model.v_template[i].map(f64::from);
+            if let Some(o) = static_offset {
+                for c in 0..3 {
+                    p[c] += f64::from(o[i][c]);
+                }
+            }
+            for (c, pc) in p.iter_mut().enumerate() {
+                let row = &model.shapedirs[(i * 3 + c) * k..(i * 3 + c + 1) * k];
+                *pc += active
+                    .iter()
+                    .map(|&(q, w)| f64::from(row[q]) * w)
+                    .sum::<f64>();
+            }
+            p
+        })
+        .collect()
+}
+
+/// Joint locations of shaped vertices (step 2 of LBS).
+fn regress_joints(model: &HeadModel, shaped: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    let v = model.num_vertices();
+    (0..model.num_joints())
+        .map(|a| {
+            let row = &model.j_regressor[a * v..(a + 1) * v];
+            let mut p = [0.0f64; 3];
+            for (w, s) in row.iter().zip(shaped) {
+                if *w != 0.0 {
+                    for c in 0..3 {
+                        p[c] += f64::from(*w) * s[c];
+                    }
+                }
+            }
+            p
+        })
+        .collect()
+}
+
+/// The rest-pose joint locations for `pose`'s shape, expression and static offsets (before
+/// any rotation or translation).
+pub fn joints(model: &HeadModel, pose: &HeadPose) -> Vec<[f32; 3]> {
+    let shaped = shaped_vertices(model, pose);
+    regress_joints(model, &shaped)
+        .into_iter()
+        .map(|p| p.map(|x| x as f32))
+        .collect()
+}
+
 /// Poses the model: returns the posed vertices [V].
 pub fn lbs(model: &HeadModel, pose: &HeadPose) -> Result<Vec<[f32; 3]>> {
     let what = "head pose";
@@ -133,54 +210,8 @@ pub fn lbs(model: &HeadModel, pose: &HeadPose) -> Result<Vec<[f32; 3]>> {
             format!("{} offsets for {v} vertices", o.len()),
         ));
     }
-    let k = model.num_shape + model.num_expr;
-    let mut coef = vec![0.0f64; k];
-    for (i, &c) in pose.shape.iter().enumerate() {
-        coef[i] = f64::from(c);
-    }
-    for (i, &c) in pose.expr.iter().enumerate() {
-        coef[model.num_shape + i] = f64::from(c);
-    }
-    let active: Vec<(usize, f64)> = coef
-        .iter()
-        .copied()
-        .enumerate()
-        .filter(|(_, c)| *c != 0.0)
-        .collect();
-    // 1. Shaped vertices.
-    let mut shaped: Vec<[f64; 3]> = (0..v)
-        .map(|i| {
-            let mut p = model.v_template[i].map(f64::from);
-            if let Some(o) = &pose.static_offset {
-                for c in 0..3 {
-                    p[c] += f64::from(o[i][c]);
-                }
-            }
-            for (c, pc) in p.iter_mut().enumerate() {
-                let row = &model.shapedirs[(i * 3 + c) * k..(i * 3 + c + 1) * k];
-                *pc += active
-                    .iter()
-                    .map(|&(q, w)| f64::from(row[q]) * w)
-                    .sum::<f64>();
-            }
-            p
-        })
-        .collect();
-    // 2. Joints.
-    let joints: Vec<[f64; 3]> = (0..j)
-        .map(|a| {
-            let row = &model.j_regressor[a * v..(a + 1) * v];
-            let mut p = [0.0f64; 3];
-            for (w, s) in row.iter().zip(&shaped) {
-                if *w != 0.0 {
-                    for c in 0..3 {
-                        p[c] += f64::from(*w) * s[c];
-                    }
-                }
-            }
-            p
-        })
-        .collect();
+    let mut shaped = shaped_vertices(model, pose);
+    let joints = regress_joints(model, &shaped);
     // 3. Rotations and the pose feature.
     let rots: Vec<M3> = pose
         .joint_rotations()

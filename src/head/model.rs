@@ -124,8 +124,16 @@ impl HeadModel {
 
     /// Loads the model from an `.npz` (see the module documentation).
     pub fn load(path: &Path) -> Result<Self> {
+        Self::from_npz(Npz::open(path)?, path)
+    }
+
+    /// Reads the model from an `.npz` held in memory; `path` names it in error messages.
+    pub fn from_bytes(bytes: Vec<u8>, path: &Path) -> Result<Self> {
+        Self::from_npz(Npz::from_bytes(bytes, path)?, path)
+    }
+
+    fn from_npz(mut z: Npz, path: &Path) -> Result<Self> {
         let what = path.display().to_string();
-        let mut z = Npz::open(path)?;
         let shape_err = |field: &str, got: &[usize], want: &str| {
             Error::invalid(&what, field, format!("shape {got:?}, expected {want}"))
         };

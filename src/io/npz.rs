@@ -27,6 +27,11 @@ impl Npz {
     /// Opens `path`.
     pub fn open(path: &Path) -> Result<Self> {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        Self::from_bytes(bytes, path)
+    }
+
+    /// Reads an archive held in memory; `path` names it in error messages.
+    pub fn from_bytes(bytes: Vec<u8>, path: &Path) -> Result<Self> {
         let archive = NpzArchive::new(Cursor::new(bytes)).map_err(|e| {
             Error::invalid(
                 path.display().to_string(),
