@@ -14,6 +14,7 @@ pub mod io;
 pub mod lift;
 pub mod mesh;
 pub mod splat;
+pub mod synth;
 pub mod texel;
 
 pub use burn;

@@ -2,6 +2,7 @@
 
 pub mod head;
 pub mod splat;
+pub mod synth;
 pub mod uv;
 
 use clap::{Parser, Subcommand};
@@ -23,6 +24,8 @@ pub enum Command {
     /// The Gaussian rasterizer on its own.
     #[command(subcommand)]
     Splat(splat::SplatCommand),
+    /// Render the synthetic multi-view head benchmark (VHAP / GaussianAvatars format).
+    Synth(synth::SynthArgs),
     /// UV layouts of meshes.
     #[command(subcommand)]
     Uv(uv::UvCommand),
@@ -33,6 +36,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Head(c) => head::run(c),
         Command::Splat(c) => splat::run(c),
+        Command::Synth(a) => synth::run(a),
         Command::Uv(c) => uv::run(c),
     }
 }

@@ -113,6 +113,77 @@ pub fn opencv_world_to_camera(c2w_gl: &[[f32; 4]; 4]) -> [[f32; 4]; 4] {
     w2c
 }
 
+/// The inverse of [`opencv_world_to_camera`]: camera-to-world in OpenGL axes.
+pub fn opengl_camera_to_world(w2c_cv: &[[f32; 4]; 4]) -> [[f32; 4]; 4] {
+    // c2w (OpenCV) = [R^T | -R^T t]; then flip the camera's y and z axes.
+    let mut out = [[0.0f32; 4]; 4];
+    for i in 0..3 {
+        for j in 0..3 {
+            let r_t = w2c_cv[j][i];
+            out[i][j] = if j == 0 { r_t } else { -r_t };
+        }
+        out[i][3] = -(0..3).map(|k| w2c_cv[k][i] * w2c_cv[k][3]).sum::<f32>();
+    }
+    out[3][3] = 1.0;
+    out
+}
+
+/// One frame to write into a `transforms_*.json`: paths relative to the JSON's folder.
+#[derive(Clone, Debug)]
+pub struct FrameRecord {
+    pub timestep: usize,
+    pub camera_index: usize,
+    pub file_path: String,
+    pub fg_mask_path: String,
+    pub flame_param_path: String,
+    pub camera: Camera,
+}
+
+/// Writes a `transforms_*.json` in VHAP's layout (top-level intrinsics from the first
+/// frame, every frame with its own too), through a temporary file.
+pub fn save_transforms(path: &Path, frames: &[FrameRecord]) -> Result<()> {
+    let what = path.display().to_string();
+    let Some(first) = frames.first() else {
+        return Err(Error::invalid(what, "frames", "no frames to write"));
+    };
+    let c = &first.camera;
+    let angle = |f: f32, size: u32| 2.0 * (0.5 * size as f32 / f).atan();
+    let mut timesteps: Vec<usize> = frames.iter().map(|f| f.timestep).collect();
+    timesteps.sort_unstable();
+    timesteps.dedup();
+    let mut cameras: Vec<usize> = frames.iter().map(|f| f.camera_index).collect();
+    cameras.sort_unstable();
+    cameras.dedup();
+    let list: Vec<serde_json::Value> = frames
+        .iter()
+        .map(|f| {
+            let k = &f.camera;
+            serde_json::json!({
+                "timestep_index": f.timestep,
+                "camera_index": f.camera_index,
+                "file_path": f.file_path,
+                "fg_mask_path": f.fg_mask_path,
+                "flame_param_path": f.flame_param_path,
+                "transform_matrix": opengl_camera_to_world(&k.world_to_camera),
+                "cx": k.cx, "cy": k.cy, "fl_x": k.fx, "fl_y": k.fy, "h": k.height, "w": k.width,
+                "camera_angle_x": angle(k.fx, k.width), "camera_angle_y": angle(k.fy, k.height),
+            })
+        })
+        .collect();
+    let doc = serde_json::json!({
+        "cx": c.cx, "cy": c.cy, "fl_x": c.fx, "fl_y": c.fy, "h": c.height, "w": c.width,
+        "camera_angle_x": angle(c.fx, c.width), "camera_angle_y": angle(c.fy, c.height),
+        "timestep_indices": timesteps,
+        "camera_indices": cameras,
+        "frames": list,
+    });
+    let text = serde_json::to_string_pretty(&doc)
+        .map_err(|e| Error::invalid(&what, "json", e.to_string()))?;
+    let tmp = path.with_extension("json.partial");
+    std::fs::write(&tmp, text).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
 /// Reads a `transforms_*.json`.
 pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
     let what = path.display().to_string();

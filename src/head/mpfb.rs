@@ -44,7 +44,7 @@ pub const UV_PADDING: f32 = 4.0 / 512.0;
 /// Nearest expression-free vertices that regress the root, neck and jaw joints.
 pub const REGRESSOR_VERTICES: usize = 96;
 /// A skin vertex is lips when the lip-rolling units move it this fraction of their maximum.
-pub const LIPS_FRACTION: f32 = 0.3;
+pub const LIPS_FRACTION: f32 = 0.45;
 
 /// Helper groups kept, with their part names.
 pub const HELPERS: [(&str, &str); 5] = [

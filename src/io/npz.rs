@@ -180,7 +180,12 @@ where
     let io = |e: std::io::Error| Error::io(tmp, e);
     let s: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
     let mut a = w
-        .array::<T>(name, npyz::zip::write::FileOptions::default())
+        .array::<T>(
+            name,
+            // A fixed timestamp: the same arrays give the same bytes.
+            npyz::zip::write::FileOptions::default()
+                .last_modified_time(npyz::zip::DateTime::default()),
+        )
         .map_err(io)?
         .default_dtype()
         .shape(&s)

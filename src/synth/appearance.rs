@@ -1,0 +1,445 @@
+//! Appearance baked in UV space: a procedural albedo (skin, hair, brows, lips, irises,
+//! teeth, tongue), a specular map, and expression wrinkle maps whose activations the
+//! expression coefficients drive.
+//!
+//! Everything is a function of the canonical (rest) surface point, in head units `q`:
+//! metres relative to the point between the eyes, divided by the eye distance (so the
+//! patterns fit any head with FLAME's eye joints). Parts come from the meta's vertex sets
+//! (`eye_l`, `eye_r`, `teeth_upper`, `teeth_lower`, `tongue`, `lips`); heads without them
+//! are all skin.
+//!
+//! # Wrinkles
+//! Seven kinds: forehead lines, glabellar lines, crow's feet (left, right), nasolabial
+//! folds (left, right) — and where each appears is where its driving blendshapes move the
+//! surface (their displacement, normalised), times a line pattern: horizontal lines, vertical
+//! lines, rays around the eye, one fold from the nose wing down. Activations are clamped
+//! weighted sums of the driving expression coefficients ([`WRINKLE_DRIVERS`]). The geometry
+//! moves with the blendshapes but never shows these lines: only shading does.
+
+use glam::Vec3;
+
+use crate::error::Result;
+use crate::head::{HeadAsset, HeadPose, lbs};
+use crate::splat::demo::Pcg;
+use crate::texel::layout::UvLayout;
+
+/// Number of wrinkle kinds.
+pub const WRINKLES: usize = 7;
+/// Wrinkle names, in map order.
+pub const WRINKLE_NAMES: [&str; WRINKLES] = [
+    "forehead", "glabella", "crow_l", "crow_r", "naso_l", "naso_r", "chin",
+];
+/// Driving units and weights of each wrinkle.
+pub const WRINKLE_DRIVERS: [&[(&str, f32)]; WRINKLES] = [
+    &[
+        ("browInnerUp", 1.0),
+        ("browOuterUpLeft", 0.5),
+        ("browOuterUpRight", 0.5),
+    ],
+    &[
+        ("browDownLeft", 0.6),
+        ("browDownRight", 0.6),
+        ("noseSneerLeft", 0.3),
+        ("noseSneerRight", 0.3),
+    ],
+    &[
+        ("eyeSquintLeft", 1.0),
+        ("cheekSquintLeft", 0.6),
+        ("mouthSmileLeft", 0.5),
+    ],
+    &[
+        ("eyeSquintRight", 1.0),
+        ("cheekSquintRight", 0.6),
+        ("mouthSmileRight", 0.5),
+    ],
+    &[
+        ("mouthSmileLeft", 1.0),
+        ("noseSneerLeft", 0.6),
+        ("mouthUpperUpLeft", 0.5),
+    ],
+    &[
+        ("mouthSmileRight", 1.0),
+        ("noseSneerRight", 0.6),
+        ("mouthUpperUpRight", 0.5),
+    ],
+    &[
+        ("mouthShrugLower", 1.0),
+        ("mouthPressLeft", 0.4),
+        ("mouthPressRight", 0.4),
+        ("mouthFrownLeft", 0.3),
+        ("mouthFrownRight", 0.3),
+    ],
+];
+/// Length of the eta side signal.
+pub const ETA_DIM: usize = crate::data::vhap::ETA_DIM;
+
+/// Surface parts with their own colour and gloss.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Part {
+    Skin,
+    Eye,
+    Teeth,
+    Tongue,
+}
+
+/// The baked maps (`res x res`, row-major, row 0 at `v = 0`).
+#[derive(Clone, Debug)]
+pub struct Appearance {
+    pub res: usize,
+    /// RGB albedo.
+    pub albedo: Vec<[f32; 3]>,
+    /// Specular strength.
+    pub specular: Vec<f32>,
+    /// Per wrinkle kind, darkening at full activation, in [0, 1].
+    pub wrinkles: Vec<[f32; WRINKLES]>,
+    /// Driver indices and weights per wrinkle kind (resolved against the head's names).
+    pub drivers: Vec<Vec<(usize, f32)>>,
+    /// The eta projection [ETA_DIM x WRINKLES], row-major.
+    pub eta_projection: Vec<f32>,
+}
+
+fn smoothstep(a: f32, b: f32, x: f32) -> f32 {
+    let t = ((x - a) / (b - a)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Thin periodic lines: 1 on the lines, 0 between.
+fn lines(x: f32, period: f32, width: f32) -> f32 {
+    let f = (x / period).rem_euclid(1.0) - 0.5;
+    (-(f / width).powi(2)).exp()
+}
+
+/// Smooth 3D value noise stand-in: a fixed sum of sines.
+fn noise(p: Vec3, freq: f32) -> f32 {
+    let q = p * freq;
+    ((q.x * 1.7 + q.y * 0.3).sin()
+        + (q.y * 2.1 - q.z * 0.7 + 1.3).sin()
+        + (q.z * 1.3 + q.x * 0.9 + 2.1).sin())
+        / 3.0
+}
+
+/// Distance from `p` to the segment `a`-`b` (2D).
+fn seg_dist(p: glam::Vec2, a: glam::Vec2, b: glam::Vec2) -> f32 {
+    let ab = b - a;
+    let t = ((p - a).dot(ab) / ab.length_squared()).clamp(0.0, 1.0);
+    (p - (a + t * ab)).length()
+}
+
+struct Frame {
+    mid: Vec3,
+    scale: f32,
+    eye_l: Vec3,
+    eye_r: Vec3,
+}
+
+impl Frame {
+    fn q(&self, p: Vec3) -> Vec3 {
+        (p - self.mid) / self.scale
+    }
+}
+
+fn skin_albedo(q: Vec3, lips: f32) -> [f32; 3] {
+    let base = Vec3::new(0.80, 0.60, 0.50);
+    let mut c = base * (1.0 + 0.05 * noise(q, 6.0) + 0.03 * noise(q, 23.0));
+    // Flushed cheeks and nose tip.
+    let cheek = (-((q.x.abs() - 0.7).powi(2) + (q.y + 0.75).powi(2)) / 0.12).exp()
+        * smoothstep(0.0, 0.5, q.z);
+    let nose = (-(q.x.powi(2) + (q.y + 0.55).powi(2)) / 0.03).exp() * smoothstep(0.5, 1.0, q.z);
+    c += Vec3::new(0.05, -0.04, -0.03) * (cheek + 0.6 * nose);
+    // Hair: a cap above the hairline, which drops towards the back of the head.
+    let hairline = 1.25 - 1.2 * smoothstep(0.2, -1.2, q.z);
+    let hair =
+        smoothstep(hairline - 0.05, hairline + 0.1, q.y) * (1.0 - smoothstep(1.35, 1.7, q.x.abs()));
+    let hair_c = Vec3::new(0.22, 0.15, 0.10) * (1.0 + 0.25 * lines(q.x + 0.3 * q.z, 0.05, 0.3));
+    c = c.lerp(hair_c, hair);
+    // Brows: a band over each eye, thicker inside.
+    let ax = q.x.abs();
+    let centre = 0.42 + 0.10 * (1.0 - ((ax - 0.55) / 0.45).powi(2)).max(0.0);
+    let half = 0.09 * (1.0 - 0.5 * smoothstep(0.2, 1.0, ax));
+    let brow = (1.0 - smoothstep(half * 0.6, half, (q.y - centre).abs()))
+        * smoothstep(0.08, 0.2, ax)
+        * (1.0 - smoothstep(0.9, 1.05, ax))
+        * smoothstep(0.2, 0.5, q.z);
+    c = c.lerp(Vec3::new(0.25, 0.17, 0.12), 0.9 * brow);
+    // Lips.
+    c = c.lerp(Vec3::new(0.70, 0.33, 0.33), lips);
+    c.to_array()
+}
+
+fn eye_albedo(d: Vec3) -> [f32; 3] {
+    // d: unit direction from the eyeball centre; the iris faces +z.
+    let ang = d.z.clamp(-1.0, 1.0).acos();
+    let sclera = Vec3::new(0.92, 0.90, 0.87);
+    let iris = Vec3::new(0.28, 0.42, 0.52) * (0.8 + 0.2 * (12.0 * d.y.atan2(d.x)).sin());
+    let mut c = sclera.lerp(iris, 1.0 - smoothstep(0.42, 0.48, ang));
+    c = c.lerp(Vec3::splat(0.03), 1.0 - smoothstep(0.15, 0.19, ang));
+    c.to_array()
+}
+
+/// Bakes the maps for `head` at `res`.
+pub fn bake(head: &HeadAsset, res: usize, seed: u64) -> Result<Appearance> {
+    let model = &head.model;
+    let meta = &head.meta;
+    let v = model.num_vertices();
+    let layout = UvLayout::new(&head.mesh, res)?;
+    let joints = lbs::joints(model, &HeadPose::neutral(model));
+    let eye_l = Vec3::from(joints[3]);
+    let eye_r = Vec3::from(joints[4]);
+    let frame = Frame {
+        mid: 0.5 * (eye_l + eye_r),
+        scale: (eye_l - eye_r).length().max(1e-4),
+        eye_l,
+        eye_r,
+    };
+    let part_of: Vec<Part> = {
+        let mut p = vec![Part::Skin; v];
+        for (set, part) in [
+            ("eye_l", Part::Eye),
+            ("eye_r", Part::Eye),
+            ("teeth_upper", Part::Teeth),
+            ("teeth_lower", Part::Teeth),
+            ("tongue", Part::Tongue),
+        ] {
+            for (i, m) in meta.mask(set, v).into_iter().enumerate() {
+                if m {
+                    p[i] = part;
+                }
+            }
+        }
+        p
+    };
+    let eye_of: Vec<u8> = {
+        let l = meta.mask("eye_l", v);
+        let r = meta.mask("eye_r", v);
+        (0..v)
+            .map(|i| {
+                if l[i] {
+                    1
+                } else if r[i] {
+                    2
+                } else {
+                    0
+                }
+            })
+            .collect()
+    };
+    let lips = meta.mask("lips", v);
+    // Drivers and their normalised displacement per vertex.
+    let k = model.num_shape + model.num_expr;
+    let drivers: Vec<Vec<(usize, f32)>> = WRINKLE_DRIVERS
+        .iter()
+        .map(|d| {
+            d.iter()
+                .filter_map(|(n, w)| meta.expr(n).map(|i| (i, *w)))
+                .collect()
+        })
+        .collect();
+    let region: Vec<Vec<f32>> = drivers
+        .iter()
+        .map(|d| {
+            let mut m: Vec<f32> = (0..v)
+                .map(|i| {
+                    d.iter()
+                        .map(|&(e, w)| {
+                            let c = model.num_shape + e;
+                            w * Vec3::new(
+                                model.shapedirs[(i * 3) * k + c],
+                                model.shapedirs[(i * 3 + 1) * k + c],
+                                model.shapedirs[(i * 3 + 2) * k + c],
+                            )
+                            .length()
+                        })
+                        .sum::<f32>()
+                })
+                .collect();
+            let max = m.iter().copied().fold(0.0f32, f32::max);
+            if max > 0.0 {
+                m.iter_mut()
+                    .for_each(|x| *x = smoothstep(0.08, 0.5, *x / max));
+            }
+            m
+        })
+        .collect();
+    let n = res * res;
+    let mut albedo = vec![[1.0f32; 3]; n];
+    let mut specular = vec![0.0f32; n];
+    let mut wrinkles = vec![[0.0f32; WRINKLES]; n];
+    for t in 0..n {
+        let Some(_) = layout.face[t] else { continue };
+        let vs = layout.verts[t];
+        let b = layout.bary[t];
+        let interp =
+            |f: &dyn Fn(usize) -> f32| -> f32 { (0..3).map(|c| b[c] * f(vs[c] as usize)).sum() };
+        let p: Vec3 = (0..3)
+            .map(|c| b[c] * Vec3::from(model.v_template[vs[c] as usize]))
+            .sum();
+        let q = frame.q(p);
+        let part = part_of[vs[0] as usize];
+        let (col, spec) = match part {
+            Part::Skin => {
+                let l = interp(&|i| f32::from(u8::from(lips[i])));
+                (skin_albedo(q, l), 0.05 + 0.08 * l)
+            }
+            Part::Eye => {
+                let centre = if eye_of[vs[0] as usize] == 1 {
+                    frame.eye_l
+                } else {
+                    frame.eye_r
+                };
+                (eye_albedo((p - centre).normalize_or_zero()), 0.6)
+            }
+            Part::Teeth => {
+                let gap = lines(q.x, 0.12, 0.06);
+                (
+                    (Vec3::new(0.92, 0.89, 0.80) * (1.0 - 0.35 * gap)).to_array(),
+                    0.3,
+                )
+            }
+            Part::Tongue => (
+                (Vec3::new(0.72, 0.36, 0.38) * (1.0 + 0.05 * noise(q, 40.0))).to_array(),
+                0.25,
+            ),
+        };
+        albedo[t] = col;
+        specular[t] = spec;
+        if part != Part::Skin {
+            continue;
+        }
+        let r = |kind: usize| interp(&|i| region[kind][i]);
+        let qe = |e: Vec3| frame.q(e);
+        let mut w = [0.0f32; WRINKLES];
+        w[0] = r(0) * lines(q.y, 0.11, 0.12) * smoothstep(0.5, 0.75, q.y);
+        w[1] = r(1)
+            * lines(q.x, 0.07, 0.12)
+            * (1.0 - smoothstep(0.12, 0.2, q.x.abs()))
+            * smoothstep(0.05, 0.2, q.y);
+        for (i, e) in [(2usize, qe(frame.eye_l)), (3, qe(frame.eye_r))] {
+            let d = glam::Vec2::new(q.x - e.x, q.y - e.y);
+            let lateral = smoothstep(0.25, 0.4, d.x * e.x.signum());
+            let ring = smoothstep(0.3, 0.4, d.length()) * (1.0 - smoothstep(0.7, 0.85, d.length()));
+            w[i] = r(i) * lines(d.y.atan2(d.x.abs()), 0.16, 0.15) * lateral * ring;
+        }
+        for (i, s) in [(4usize, 1.0f32), (5, -1.0)] {
+            let p2 = glam::Vec2::new(q.x, q.y);
+            let d = seg_dist(
+                p2,
+                glam::Vec2::new(0.33 * s, -0.62),
+                glam::Vec2::new(0.62 * s, -1.3),
+            );
+            w[i] = r(i) * (-(d / 0.04).powi(2)).exp();
+        }
+        w[6] = r(6)
+            * (0.6 + 0.4 * noise(q, 60.0))
+            * smoothstep(-1.6, -1.45, q.y)
+            * (1.0 - smoothstep(-1.3, -1.2, q.y));
+        wrinkles[t] = w.map(|x| x.clamp(0.0, 1.0));
+    }
+    dilate(&layout, res, &mut albedo, &mut specular, &mut wrinkles);
+    let mut rng = Pcg::new(seed ^ 0xe7a);
+    let eta_projection = (0..ETA_DIM * WRINKLES)
+        .map(|_| rng.normal() / (WRINKLES as f32).sqrt())
+        .collect();
+    Ok(Appearance {
+        res,
+        albedo,
+        specular,
+        wrinkles,
+        drivers,
+        eta_projection,
+    })
+}
+
+/// Fills uncovered texels from covered neighbours (a few rings), so bilinear lookups at
+/// island borders do not blend in the background.
+fn dilate(
+    layout: &UvLayout,
+    res: usize,
+    albedo: &mut [[f32; 3]],
+    spec: &mut [f32],
+    wr: &mut [[f32; WRINKLES]],
+) {
+    let mut filled: Vec<bool> = layout.face.iter().map(Option::is_some).collect();
+    for _ in 0..4 {
+        let prev = filled.clone();
+        for j in 0..res {
+            for i in 0..res {
+                let t = j * res + i;
+                if prev[t] {
+                    continue;
+                }
+                let nb = [
+                    (i.wrapping_sub(1), j),
+                    (i + 1, j),
+                    (i, j.wrapping_sub(1)),
+                    (i, j + 1),
+                ];
+                if let Some(&(a, b)) = nb
+                    .iter()
+                    .find(|&&(a, b)| a < res && b < res && prev[b * res + a])
+                {
+                    let s = b * res + a;
+                    albedo[t] = albedo[s];
+                    spec[t] = spec[s];
+                    wr[t] = wr[s];
+                    filled[t] = true;
+                }
+            }
+        }
+    }
+}
+
+impl Appearance {
+    /// Wrinkle activations of a frame's expression coefficients, each in [0, 1].
+    pub fn activations(&self, pose: &HeadPose) -> [f32; WRINKLES] {
+        std::array::from_fn(|k| {
+            self.drivers[k]
+                .iter()
+                .map(|&(e, w)| w * pose.expr.get(e).copied().unwrap_or(0.0))
+                .sum::<f32>()
+                .clamp(0.0, 1.0)
+        })
+    }
+
+    /// The eta side signal: the fixed projection of the activations plus Gaussian noise.
+    pub fn eta(&self, act: &[f32; WRINKLES], noise: f32, rng: &mut Pcg) -> Vec<f32> {
+        (0..ETA_DIM)
+            .map(|r| {
+                (0..WRINKLES)
+                    .map(|k| self.eta_projection[r * WRINKLES + k] * act[k])
+                    .sum::<f32>()
+                    + noise * rng.normal()
+            })
+            .collect()
+    }
+
+    /// Bilinear lookup at `uv` (OBJ convention, clamped to the map): albedo, specular and
+    /// wrinkle darkening for the given activations.
+    pub fn sample(&self, uv: [f32; 2], act: &[f32; WRINKLES]) -> ([f32; 3], f32, f32) {
+        let r = self.res;
+        let x = (uv[0] * r as f32 - 0.5).clamp(0.0, (r - 1) as f32);
+        let y = (uv[1] * r as f32 - 0.5).clamp(0.0, (r - 1) as f32);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(r - 1), (y0 + 1).min(r - 1));
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let taps = [
+            (x0, y0, (1.0 - fx) * (1.0 - fy)),
+            (x1, y0, fx * (1.0 - fy)),
+            (x0, y1, (1.0 - fx) * fy),
+            (x1, y1, fx * fy),
+        ];
+        let mut a = [0.0f32; 3];
+        let (mut s, mut w) = (0.0f32, 0.0f32);
+        for (i, j, wt) in taps {
+            let t = j * r + i;
+            for c in 0..3 {
+                a[c] += wt * self.albedo[t][c];
+            }
+            s += wt * self.specular[t];
+            w += wt
+                * (0..WRINKLES)
+                    .map(|k| act[k] * self.wrinkles[t][k])
+                    .sum::<f32>();
+        }
+        (a, s, w.clamp(0.0, 1.0))
+    }
+}
