@@ -1,3 +1,10 @@
-//! Datasets: the VHAP / GaussianAvatars export format.
+//! Datasets: the VHAP / GaussianAvatars export format, as a burn dataset and batcher.
 
+pub mod batch;
+pub mod dataset;
+pub mod split;
 pub mod vhap;
+
+pub use batch::{HeadBatch, HeadBatcher};
+pub use dataset::{Conditioning, HeadDataset, HeadItem};
+pub use split::Split;

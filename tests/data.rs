@@ -1,0 +1,619 @@
+//! The VHAP dataset and batcher on a tiny export written here: 2 timesteps x 2 cameras of
+//! 8x6 images (camera 0: RGBA with a mask, camera 1: RGB without), FLAME parameters with
+//! fewer and more expression coefficients than the model, eta for timestep 0 only.
+//! Round trip, batching, burn's data loader, and every malformed input named by file and
+//! field.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use burn::data::dataloader::DataLoaderBuilder;
+use burn::data::dataloader::batcher::Batcher;
+use burn::data::dataset::Dataset;
+use burn::tensor::{Device, Tensor};
+use serde_json::json;
+use texavatars::data::vhap::{ETA_DIM, opencv_world_to_camera};
+use texavatars::data::{HeadBatcher, HeadDataset, HeadItem, Split};
+use texavatars::device::BackendKind;
+use texavatars::head::model::HeadModel;
+use texavatars::head::{HeadPose, lbs};
+use texavatars::io::npz::NpzOut;
+
+const W: u32 = 8;
+const H: u32 = 6;
+const E: usize = 3;
+const V: usize = 6;
+
+/// Six vertices, five joints (as tests/head.rs), one shape and three expression directions.
+fn tiny() -> HeadModel {
+    let v_template = vec![
+        [0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 2.0, 0.0],
+        [-1.0, 3.0, 0.0],
+        [1.0, 3.0, 0.0],
+        [0.0, 3.0, 0.0],
+    ];
+    let k = 1 + E;
+    let mut shapedirs = vec![0.0f32; V * 3 * k];
+    shapedirs[0] = 1.0; // shape: vertex 0 +x
+    shapedirs[(5 * 3 + 2) * k + 1] = 1.0; // expr 0: vertex 5 +z
+    shapedirs[(5 * 3) * k + 2] = 1.0; // expr 1: vertex 5 +x
+    shapedirs[(4 * 3 + 1) * k + 3] = 1.0; // expr 2: vertex 4 +y
+    let p = 36;
+    let mut posedirs = vec![0.0f32; V * 3 * p];
+    posedirs[(5 * 3 + 1) * p + 9 + 4] = 1.0;
+    let mut j_regressor = vec![0.0f32; 5 * V];
+    let mut weights = vec![0.0f32; V * 5];
+    for i in 0..5 {
+        j_regressor[i * V + i] = 1.0;
+        weights[i * 5 + i] = 1.0;
+    }
+    weights[5 * 5 + 2] = 1.0;
+    HeadModel {
+        v_template,
+        shapedirs,
+        num_shape: 1,
+        num_expr: E,
+        posedirs,
+        j_regressor,
+        weights,
+        parents: vec![None, Some(0), Some(1), Some(1), Some(1)],
+        faces: vec![[0, 1, 2], [2, 5, 3], [2, 5, 4]],
+    }
+}
+
+/// Timestep 0: two expression coefficients (padded), a static offset, eta on disk.
+/// Timestep 1: five (truncated), no static offset, no eta.
+fn pose(t: usize) -> HeadPose {
+    if t == 0 {
+        HeadPose {
+            shape: vec![0.1],
+            expr: vec![0.5, -0.25],
+            jaw: [0.3, 0.0, 0.0],
+            translation: [0.0, 0.0, 1.0],
+            static_offset: Some((0..V).map(|i| [0.01 * i as f32, 0.0, -0.02]).collect()),
+            ..Default::default()
+        }
+    } else {
+        HeadPose {
+            shape: vec![-0.2],
+            expr: vec![1.0, 2.0, 3.0, 4.0, 5.0],
+            rotation: [0.0, 0.2, 0.0],
+            neck: [0.1, 0.0, 0.0],
+            eyes: [0.0, 0.1, 0.0, 0.0, -0.1, 0.0],
+            translation: [0.5, -0.5, 0.0],
+            ..Default::default()
+        }
+    }
+}
+
+fn eta0() -> Vec<f32> {
+    (0..ETA_DIM).map(|i| i as f32 / 10.0 - 3.0).collect()
+}
+
+/// VHAP's camera-to-world (OpenGL) of camera `c`.
+fn c2w(c: usize) -> [[f32; 4]; 4] {
+    if c == 0 {
+        [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 3.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    } else {
+        [
+            [0.0, 0.0, 1.0, 3.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [-1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    }
+}
+
+/// The 8-bit value of channel `ch` at pixel (`x`, `y`) of timestep `t`, camera `c`; channel
+/// 3 is alpha, channel 4 the mask.
+fn texel(t: usize, c: usize, x: u32, y: u32, ch: usize) -> u8 {
+    ((t * 7 + c * 13 + x as usize * 17 + y as usize * 29 + ch * 41) % 256) as u8
+}
+
+/// Expected item `i` (= timestep i / 2, camera i % 2) image and mask.
+fn expected_pixels(t: usize, c: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut image = Vec::new();
+    let mut mask = Vec::new();
+    for y in 0..H {
+        for x in 0..W {
+            let a = if c == 0 {
+                f32::from(texel(t, c, x, y, 3)) / 255.0
+            } else {
+                1.0
+            };
+            for ch in 0..3 {
+                image.push(f32::from(texel(t, c, x, y, ch)) / 255.0 * a + (1.0 - a));
+            }
+            mask.push(if c == 0 {
+                f32::from(texel(t, c, x, y, 4)) / 255.0
+            } else {
+                1.0
+            });
+        }
+    }
+    (image, mask)
+}
+
+/// The arrays of a VHAP `flame_param` file, to edit before writing with [`write_arrays`].
+fn arrays(p: &HeadPose) -> Vec<(&'static str, Vec<usize>, Vec<f32>)> {
+    let mut a = vec![
+        ("translation", vec![1, 3], p.translation.to_vec()),
+        ("rotation", vec![1, 3], p.rotation.to_vec()),
+        ("neck_pose", vec![1, 3], p.neck.to_vec()),
+        ("jaw_pose", vec![1, 3], p.jaw.to_vec()),
+        ("eyes_pose", vec![1, 6], p.eyes.to_vec()),
+        ("expr", vec![1, p.expr.len()], p.expr.clone()),
+        ("shape", vec![p.shape.len()], p.shape.clone()),
+    ];
+    if let Some(o) = &p.static_offset {
+        a.push(("static_offset", vec![1, o.len(), 3], o.concat()));
+    }
+    a
+}
+
+fn write_arrays(path: &Path, arrays: &[(&str, Vec<usize>, Vec<f32>)]) {
+    let mut out = NpzOut::default();
+    for (name, shape, data) in arrays {
+        out.floats(name, shape, data.clone());
+    }
+    out.write(path).expect("write npz");
+}
+
+/// A tiny export in a fresh temporary folder.
+struct Fixture {
+    root: PathBuf,
+    model: Arc<HeadModel>,
+}
+
+impl Fixture {
+    fn new(name: &str) -> Self {
+        let root =
+            std::env::temp_dir().join(format!("texavatars-data-{}-{name}", std::process::id()));
+        if root.exists() {
+            std::fs::remove_dir_all(&root).expect("clear");
+        }
+        for d in ["images", "fg_masks", "flame_param", "eta"] {
+            std::fs::create_dir_all(root.join(d)).expect("dir");
+        }
+        let model_path = root.join("head.npz");
+        tiny().save(&model_path).expect("save model");
+        let model = Arc::new(HeadModel::load(&model_path).expect("load model"));
+        let mut frames = Vec::new();
+        for t in 0..2 {
+            pose(t)
+                .save_npz(&root.join(format!("flame_param/{t:05}.npz")))
+                .expect("params");
+            for c in 0..2 {
+                let image = format!("images/{t:05}_{c:02}.png");
+                let mask = format!("fg_masks/{t:05}_{c:02}.png");
+                if c == 0 {
+                    image::RgbaImage::from_fn(W, H, |x, y| {
+                        image::Rgba(std::array::from_fn(|ch| texel(t, c, x, y, ch)))
+                    })
+                    .save(root.join(&image))
+                    .expect("png");
+                    image::GrayImage::from_fn(W, H, |x, y| image::Luma([texel(t, c, x, y, 4)]))
+                        .save(root.join(&mask))
+                        .expect("mask");
+                } else {
+                    image::RgbImage::from_fn(W, H, |x, y| {
+                        image::Rgb(std::array::from_fn(|ch| texel(t, c, x, y, ch)))
+                    })
+                    .save(root.join(&image))
+                    .expect("png");
+                }
+                let mut f = json!({
+                    "timestep_index": t,
+                    "camera_index": c,
+                    "file_path": image,
+                    "flame_param_path": format!("flame_param/{t:05}.npz"),
+                    "transform_matrix": c2w(c),
+                });
+                if c == 0 {
+                    f["fg_mask_path"] = json!(mask);
+                }
+                frames.push(f);
+            }
+        }
+        texavatars::io::npy::write(&root.join("eta/00000.npy"), &[ETA_DIM], &eta0()).expect("eta");
+        let transforms = json!({
+            "cx": 4.0, "cy": 3.0, "fl_x": 10.0, "fl_y": 11.0, "h": H, "w": W,
+            "timestep_indices": [0, 1], "camera_indices": [0, 1],
+            "frames": frames,
+        });
+        std::fs::write(
+            root.join("transforms_train.json"),
+            serde_json::to_string_pretty(&transforms).expect("json"),
+        )
+        .expect("write json");
+        Fixture { root, model }
+    }
+
+    fn path(&self, rel: &str) -> PathBuf {
+        self.root.join(rel)
+    }
+
+    fn open(&self) -> texavatars::error::Result<HeadDataset> {
+        HeadDataset::open(&self.root, Split::Train, self.model.clone())
+    }
+
+    fn truncate(&self, rel: &str) {
+        let p = self.path(rel);
+        let bytes = std::fs::read(&p).expect("read");
+        std::fs::write(&p, &bytes[..bytes.len() / 2]).expect("truncate");
+    }
+}
+
+fn cpu() -> Device {
+    BackendKind::Cpu.device()
+}
+
+fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().iter::<f32>().collect()
+}
+
+fn close(a: &[f32], b: &[f32], what: &str) {
+    assert_eq!(a.len(), b.len(), "{what}: lengths");
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        assert!((x - y).abs() < 1e-6, "{what}[{i}]: {x} vs {y}");
+    }
+}
+
+/// Asserts that `err`'s message contains every one of `parts`.
+fn assert_names(err: impl std::fmt::Display, parts: &[&str]) {
+    let msg = err.to_string();
+    for p in parts {
+        assert!(msg.contains(p), "{msg:?} does not name {p:?}");
+    }
+}
+
+#[test]
+fn split_names_and_files() {
+    for s in Split::ALL {
+        assert_eq!(s.to_string().parse::<Split>().expect("parse"), s);
+        assert_eq!(s.file_name(), format!("transforms_{s}.json"));
+    }
+    assert_eq!(Split::Free.file_name(), "transforms_free.json");
+    assert_names(
+        "validation".parse::<Split>().expect_err("bad name"),
+        &["validation", "split"],
+    );
+    let fx = Fixture::new("split");
+    let e = HeadDataset::open(&fx.root, Split::Val, fx.model.clone()).expect_err("no val");
+    assert_names(e, &["transforms_val.json"]);
+}
+
+#[test]
+fn items_round_trip() {
+    let fx = Fixture::new("round-trip");
+    let ds = fx.open().expect("open");
+    assert_eq!(ds.len(), 4);
+    assert_eq!(Dataset::len(&ds), 4);
+    for i in 0..4 {
+        let (t, c) = (i / 2, i % 2);
+        let item = ds.load_item(i).expect("item");
+        assert_eq!(Dataset::get(&ds, i).expect("get"), item);
+        assert_eq!((item.timestep, item.camera_index), (t, c));
+        assert_eq!(
+            item.image_path,
+            fx.path(&format!("images/{t:05}_{c:02}.png"))
+        );
+        assert_eq!((item.camera.width, item.camera.height), (W, H));
+        assert_eq!(
+            (
+                item.camera.fx,
+                item.camera.fy,
+                item.camera.cx,
+                item.camera.cy
+            ),
+            (10.0, 11.0, 4.0, 3.0)
+        );
+        assert_eq!(item.camera.world_to_camera, opencv_world_to_camera(&c2w(c)));
+        let (image, mask) = expected_pixels(t, c);
+        close(&item.image, &image, "image");
+        close(&item.mask, &mask, "mask");
+        // Expression fitted to the model's 3: padded for timestep 0, truncated for 1.
+        let want_expr = if t == 0 {
+            vec![0.5, -0.25, 0.0]
+        } else {
+            vec![1.0, 2.0, 3.0]
+        };
+        assert_eq!(item.expr, want_expr);
+        assert_eq!(item.pose, pose(t).pose15());
+        let want_eta = if t == 0 { eta0() } else { vec![0.0; ETA_DIM] };
+        assert_eq!(item.eta, want_eta);
+        let posed = HeadPose {
+            expr: want_expr,
+            ..pose(t)
+        };
+        assert_eq!(item.vertices, lbs(&fx.model, &posed).expect("lbs"));
+    }
+    // The static offset and translation of timestep 0 reach the vertices.
+    let item = ds.load_item(0).expect("item");
+    assert!((item.vertices[0][2] - (1.0 - 0.02)).abs() < 1e-6);
+}
+
+#[test]
+fn conditioning_is_cached_per_timestep() {
+    let fx = Fixture::new("cache");
+    let ds = fx.open().expect("open");
+    let (a, b, c) = (
+        ds.conditioning(0).expect("0"),
+        ds.conditioning(1).expect("1"),
+        ds.conditioning(2).expect("2"),
+    );
+    assert!(Arc::ptr_eq(&a, &b), "cameras of one timestep share it");
+    assert!(!Arc::ptr_eq(&a, &c));
+    let ds = ds.with_cache(false);
+    let (a2, b2) = (
+        ds.conditioning(0).expect("0"),
+        ds.conditioning(1).expect("1"),
+    );
+    assert!(!Arc::ptr_eq(&a2, &b2));
+    assert_eq!(a2, a);
+}
+
+#[test]
+fn batch_shapes_and_condition_layout() {
+    let fx = Fixture::new("batch");
+    let ds = fx.open().expect("open");
+    let items: Vec<HeadItem> = (0..4).map(|i| ds.load_item(i).expect("item")).collect();
+    let b = HeadBatcher.batch(items.clone(), &cpu());
+    let (h, w) = (H as usize, W as usize);
+    assert_eq!(b.images.dims(), [4, h, w, 3]);
+    assert_eq!(b.masks.dims(), [4, h, w, 1]);
+    assert_eq!(b.expr.dims(), [4, E]);
+    assert_eq!(b.pose.dims(), [4, 15]);
+    assert_eq!(b.eta.dims(), [4, ETA_DIM]);
+    assert_eq!(b.condition.dims(), [4, E + 15 + ETA_DIM]);
+    assert_eq!(b.vertices.dims(), [4, V, 3]);
+    assert_eq!(b.timesteps, vec![0, 0, 1, 1]);
+    assert_eq!(b.camera_indices, vec![0, 1, 0, 1]);
+    assert_eq!(
+        b.cameras,
+        items.iter().map(|it| it.camera).collect::<Vec<_>>()
+    );
+    let concat = |f: &dyn Fn(&HeadItem) -> Vec<f32>| items.iter().flat_map(f).collect::<Vec<_>>();
+    assert_eq!(host(b.images), concat(&|it| it.image.clone()));
+    assert_eq!(host(b.masks), concat(&|it| it.mask.clone()));
+    assert_eq!(host(b.vertices), concat(&|it| it.vertices.concat()));
+    // The paper's order: [expr, pose, eta] per row.
+    assert_eq!(
+        host(b.condition),
+        concat(&|it| [it.expr.clone(), it.pose.to_vec(), it.eta.clone()].concat())
+    );
+    assert_eq!(host(b.expr), concat(&|it| it.expr.clone()));
+    assert_eq!(host(b.pose), concat(&|it| it.pose.to_vec()));
+    assert_eq!(host(b.eta), concat(&|it| it.eta.clone()));
+
+    // Items that do not stack.
+    let mut odd = items[1].clone();
+    odd.camera.width = W - 1;
+    odd.image.truncate(h * (w - 1) * 3);
+    odd.mask.truncate(h * (w - 1));
+    let e = HeadBatcher
+        .try_batch(vec![items[0].clone(), odd], &cpu())
+        .expect_err("sizes differ");
+    assert_names(e, &["images", "item 1", "00000_01.png", "00000_00.png"]);
+    assert_names(
+        HeadBatcher
+            .try_batch(Vec::new(), &cpu())
+            .expect_err("empty"),
+        &["items"],
+    );
+}
+
+#[test]
+fn burn_data_loader_batches_the_dataset() {
+    let fx = Fixture::new("loader");
+    let loader = DataLoaderBuilder::new(HeadBatcher)
+        .batch_size(3)
+        .set_device(cpu())
+        .build(fx.open().expect("open"));
+    let sizes: Vec<usize> = loader
+        .iter()
+        .map(|b| b.expect("batch").images.dims()[0])
+        .collect();
+    assert_eq!(sizes, vec![3, 1]);
+    // A bad file surfaces as the batch's error, naming the file.
+    fx.truncate("flame_param/00001.npz");
+    let loader = DataLoaderBuilder::new(HeadBatcher)
+        .batch_size(3)
+        .set_device(cpu())
+        .build(fx.open().expect("open"));
+    // Only the first result: burn 0.22's loader does not move past a failed batch, it
+    // yields the same error again on every `next`.
+    let first = loader.iter().next().expect("a result");
+    assert_names(first.map(|_| ()).expect_err("bad npz"), &["00001.npz"]);
+    // With worker threads the error ends the iteration.
+    let loader = DataLoaderBuilder::new(HeadBatcher)
+        .batch_size(1)
+        .num_workers(2)
+        .set_device(cpu())
+        .build(fx.open().expect("open"));
+    let e = loader.iter().find_map(Result::err).expect("an error");
+    assert_names(e, &["00001.npz", "`archive`"]);
+}
+
+/// Breaks the fixture with `edit`, then asserts that item `index` (through `load_item` and
+/// through burn's `Dataset::get`) fails naming every one of `parts`.
+fn item_fails(name: &str, index: usize, edit: impl FnOnce(&Fixture), parts: &[&str]) {
+    let fx = Fixture::new(name);
+    edit(&fx);
+    let ds = fx.open().expect("open");
+    assert_names(ds.load_item(index).expect_err(name), parts);
+    assert_names(Dataset::get(&ds, index).expect_err(name), parts);
+}
+
+#[test]
+fn npz_missing_key() {
+    item_fails(
+        "no-expr",
+        0,
+        |fx| {
+            let mut a = arrays(&pose(0));
+            a.retain(|(n, _, _)| *n != "expr");
+            write_arrays(&fx.path("flame_param/00000.npz"), &a);
+        },
+        &["00000.npz", "`expr`", "missing"],
+    );
+}
+
+#[test]
+fn npz_wrong_shape() {
+    item_fails(
+        "rotation-2",
+        2,
+        |fx| {
+            let mut a = arrays(&pose(1));
+            a[1] = ("rotation", vec![1, 2], vec![0.0, 0.1]);
+            write_arrays(&fx.path("flame_param/00001.npz"), &a);
+        },
+        &["00001.npz", "`rotation`", "[1, 2]"],
+    );
+    item_fails(
+        "offset-count",
+        0,
+        |fx| {
+            let mut a = arrays(&pose(0));
+            a.retain(|(n, _, _)| *n != "static_offset");
+            a.push(("static_offset", vec![1, 2, 3], vec![0.0; 6]));
+            write_arrays(&fx.path("flame_param/00000.npz"), &a);
+        },
+        &["00000.npz", "`static_offset`", "6 vertices"],
+    );
+    item_fails(
+        "shape-count",
+        1,
+        |fx| {
+            let mut a = arrays(&pose(0));
+            a[6] = ("shape", vec![2], vec![0.1, 0.2]);
+            write_arrays(&fx.path("flame_param/00000.npz"), &a);
+        },
+        &["00000.npz", "`shape`", "2 coefficients"],
+    );
+    item_fails(
+        "eta-shape",
+        1,
+        |fx| {
+            texavatars::io::npy::write(&fx.path("eta/00000.npy"), &[2], &[0.0, 1.0]).expect("eta");
+        },
+        &["00000.npy", "`eta`"],
+    );
+}
+
+#[test]
+fn truncated_npz() {
+    item_fails(
+        "npz-trunc",
+        3,
+        |fx| fx.truncate("flame_param/00001.npz"),
+        &["00001.npz", "`archive`"],
+    );
+}
+
+#[test]
+fn truncated_png() {
+    item_fails(
+        "png-trunc",
+        0,
+        |fx| fx.truncate("images/00000_00.png"),
+        &["00000_00.png", "`image`"],
+    );
+    item_fails(
+        "mask-trunc",
+        2,
+        |fx| fx.truncate("fg_masks/00001_00.png"),
+        &["00001_00.png", "`mask`"],
+    );
+}
+
+#[test]
+fn missing_image_file() {
+    item_fails(
+        "no-image",
+        3,
+        |fx| std::fs::remove_file(fx.path("images/00001_01.png")).expect("rm"),
+        &[
+            "transforms_train.json",
+            "frames[3].file_path",
+            "00001_01.png",
+        ],
+    );
+    item_fails(
+        "no-mask",
+        0,
+        |fx| std::fs::remove_file(fx.path("fg_masks/00000_00.png")).expect("rm"),
+        &[
+            "transforms_train.json",
+            "frames[0].fg_mask_path",
+            "00000_00.png",
+        ],
+    );
+}
+
+#[test]
+fn image_size_must_match_the_camera() {
+    item_fails(
+        "size",
+        1,
+        |fx| {
+            image::RgbImage::new(W - 1, H)
+                .save(fx.path("images/00000_01.png"))
+                .expect("png");
+        },
+        &["00000_01.png", "`size`", "7x6", "w = 8, h = 6"],
+    );
+    item_fails(
+        "mask-size",
+        0,
+        |fx| {
+            image::GrayImage::new(W, H + 1)
+                .save(fx.path("fg_masks/00000_00.png"))
+                .expect("png");
+        },
+        &["00000_00.png", "`size`", "8x7"],
+    );
+}
+
+#[test]
+fn truncated_or_incomplete_json() {
+    let fx = Fixture::new("json-trunc");
+    fx.truncate("transforms_train.json");
+    assert_names(
+        fx.open().expect_err("truncated"),
+        &["transforms_train.json", "`json`"],
+    );
+    // A frame without FLAME parameters is refused when the dataset is opened.
+    let fx = Fixture::new("json-no-flame");
+    let p = fx.path("transforms_train.json");
+    let mut j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&p).expect("read")).expect("json");
+    j["frames"][2]
+        .as_object_mut()
+        .expect("frame")
+        .remove("flame_param_path");
+    std::fs::write(&p, j.to_string()).expect("write");
+    assert_names(
+        fx.open().expect_err("no flame_param_path"),
+        &["transforms_train.json", "frames[2].flame_param_path"],
+    );
+}
+
+#[test]
+fn index_past_the_end_is_an_error() {
+    let fx = Fixture::new("index");
+    let ds = fx.open().expect("open");
+    assert_names(
+        ds.load_item(4).expect_err("past the end"),
+        &["transforms_train.json", "`frames`", "index 4"],
+    );
+    assert!(Dataset::get(&ds, 4).is_err());
+}
