@@ -98,8 +98,9 @@ impl HeadMeta {
     pub fn mask(&self, name: &str, v: usize) -> Vec<bool> {
         let mut m = vec![false; v];
         for r in self.vertex_sets.get(name).into_iter().flatten() {
-            for i in r[0] as usize..(r[1] as usize).min(v) {
-                m[i] = true;
+            let end = (r[1] as usize).min(v);
+            if let Some(s) = m.get_mut(r[0] as usize..end) {
+                s.fill(true);
             }
         }
         m

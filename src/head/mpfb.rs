@@ -368,9 +368,9 @@ fn pack_atlas(
         let u = |i: u32| glam::Vec2::from(uvs[i as usize]).as_dvec2();
         isl.area_uv += 0.5 * (u(t[1]) - u(t[0])).perp_dot(u(t[2]) - u(t[0])).abs();
         for &c in t {
-            for a in 0..2 {
-                isl.lo[a] = isl.lo[a].min(uvs[c as usize][a]);
-                isl.hi[a] = isl.hi[a].max(uvs[c as usize][a]);
+            for (a, &x) in uvs[c as usize].iter().enumerate() {
+                isl.lo[a] = isl.lo[a].min(x);
+                isl.hi[a] = isl.hi[a].max(x);
             }
         }
     }

@@ -10,9 +10,10 @@
 //!
 //! # Wrinkles
 //! Seven kinds: forehead lines, glabellar lines, crow's feet (left, right), nasolabial
-//! folds (left, right) — and where each appears is where its driving blendshapes move the
-//! surface (their displacement, normalised), times a line pattern: horizontal lines, vertical
-//! lines, rays around the eye, one fold from the nose wing down. Activations are clamped
+//! folds (left, right), chin dimpling. Each appears where its driving blendshapes move the
+//! surface (their displacement, normalised) — except forehead lines, which sit in the band
+//! above the brows that the brow raisers fold — times a line pattern: horizontal lines,
+//! vertical lines, rays around the eye, one fold from the nose wing down, mottling. Activations are clamped
 //! weighted sums of the driving expression coefficients ([`WRINKLE_DRIVERS`]). The geometry
 //! moves with the blendshapes but never shows these lines: only shading does.
 
@@ -308,7 +309,13 @@ pub fn bake(head: &HeadAsset, res: usize, seed: u64) -> Result<Appearance> {
         let r = |kind: usize| interp(&|i| region[kind][i]);
         let qe = |e: Vec3| frame.q(e);
         let mut w = [0.0f32; WRINKLES];
-        w[0] = r(0) * lines(q.y, 0.11, 0.12) * smoothstep(0.5, 0.75, q.y);
+        // Forehead lines lie above what the brow raisers move (the frontalis pulls the brows
+        // up and folds the skin above them): an anatomical band instead of the displacement.
+        let band = smoothstep(0.55, 0.7, q.y)
+            * (1.0 - smoothstep(1.15, 1.4, q.y))
+            * (1.0 - smoothstep(0.8, 1.1, q.x.abs()))
+            * smoothstep(-0.2, 0.2, q.z);
+        w[0] = band * lines(q.y, 0.11, 0.14);
         w[1] = r(1)
             * lines(q.x, 0.07, 0.12)
             * (1.0 - smoothstep(0.12, 0.2, q.x.abs()))
@@ -431,8 +438,8 @@ impl Appearance {
         let (mut s, mut w) = (0.0f32, 0.0f32);
         for (i, j, wt) in taps {
             let t = j * r + i;
-            for c in 0..3 {
-                a[c] += wt * self.albedo[t][c];
+            for (ac, &x) in a.iter_mut().zip(&self.albedo[t]) {
+                *ac += wt * x;
             }
             s += wt * self.specular[t];
             w += wt

@@ -97,7 +97,11 @@ impl SynthConfig {
         if self.val_camera >= self.cameras {
             return bad("val_camera", "must be a camera index");
         }
-        if !(self.distance > 0.0) || !(self.fov_y_degrees > 1.0 && self.fov_y_degrees < 170.0) {
+        let sane = self.distance.is_finite()
+            && self.distance > 0.0
+            && self.fov_y_degrees > 1.0
+            && self.fov_y_degrees < 170.0;
+        if !sane {
             return bad("distance/fov_y_degrees", "distance > 0 and 1 < fov < 170");
         }
         if self.frames_per_sequence < 2 || self.free_frames < 2 {

@@ -167,7 +167,7 @@ pub fn generate(
                     file_path: format!("../{}/{i}", seq.name),
                     fg_mask_path: format!("../{}/{m}", seq.name),
                     flame_param_path: format!("../{}/flame_param/{t:05}.npz", seq.name),
-                    camera: cam.clone(),
+                    camera: *cam,
                 };
                 let split = match seq.role {
                     Role::Train if c == config.val_camera => 1,
@@ -196,9 +196,7 @@ pub fn generate(
                         cam,
                         config.supersample,
                         &verts,
-                        &model.faces,
-                        &head.mesh.uvs,
-                        &head.mesh.uv_faces,
+                        &head.mesh,
                         &appearance,
                         &act,
                         config.wrinkle_strength,

@@ -6,6 +6,7 @@
 use glam::Vec3;
 
 use crate::camera::Camera;
+use crate::mesh::UvMesh;
 use crate::mesh::raster::rasterize;
 use crate::synth::appearance::{Appearance, WRINKLES};
 
@@ -35,20 +36,20 @@ pub fn vertex_normals(vertices: &[[f32; 3]], faces: &[[u32; 3]]) -> Vec<Vec3> {
     n.into_iter().map(Vec3::normalize_or_zero).collect()
 }
 
-/// Renders `vertices` (posed, world space) with UV faces `uv_faces` into `camera`'s image.
+/// Renders `vertices` (posed, world space) with `mesh`'s faces and UVs (its positions are
+/// not used) into `camera`'s image.
 pub fn render(
     camera: &Camera,
     supersample: u32,
     vertices: &[[f32; 3]],
-    faces: &[[u32; 3]],
-    uvs: &[[f32; 2]],
-    uv_faces: &[[u32; 3]],
+    mesh: &UvMesh,
     appearance: &Appearance,
     act: &[f32; WRINKLES],
     strength: f32,
 ) -> View {
     let s = supersample.max(1);
-    let mut big = camera.clone();
+    let (faces, uvs, uv_faces) = (&mesh.faces, &mesh.uvs, &mesh.uv_faces);
+    let mut big = *camera;
     big.width *= s;
     big.height *= s;
     big.fx *= s as f32;

@@ -298,9 +298,9 @@ pub fn sequences(config: &SynthConfig, model: &HeadModel, meta: &HeadMeta) -> Ve
             let (k0, w) = (s.floor() as usize, s.fract());
             let w = w * w * (3.0 - 2.0 * w);
             let mut pose = HeadPose::neutral(model);
-            for i in 0..e {
-                pose.expr[i] =
-                    (1.0 - w) * key_poses[k0][i] + w * key_poses[(k0 + 1).min(keys - 1)][i];
+            let (a, b) = (&key_poses[k0], &key_poses[(k0 + 1).min(keys - 1)]);
+            for (i, x) in pose.expr.iter_mut().enumerate() {
+                *x = (1.0 - w) * a[i] + w * b[i];
             }
             head_motion(
                 &mut pose,

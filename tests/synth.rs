@@ -1,0 +1,222 @@
+//! The synthetic benchmark end to end: generate a tiny one from the embedded head, read it
+//! back through the VHAP loader and the burn dataset, and check what it promises.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use texavatars::data::{HeadDataset, Split};
+use texavatars::head::{HeadAsset, HeadPose, lbs};
+use texavatars::synth::{self, SynthConfig};
+
+fn tiny_config() -> SynthConfig {
+    SynthConfig {
+        width: 24,
+        height: 32,
+        supersample: 2,
+        frames_per_sequence: 2,
+        free_frames: 3,
+        texture_res: 64,
+        ..SynthConfig::default()
+    }
+}
+
+fn out_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("texavatars-synth-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn generate(out: &Path) -> synth::Summary {
+    let head = HeadAsset::embedded().expect("head");
+    synth::generate(&tiny_config(), &head, out, &mut |_| {}).expect("synth")
+}
+
+#[test]
+fn benchmark_reads_back_through_the_loader_with_the_protocol_splits() {
+    let out = out_dir("splits");
+    let s = generate(&out);
+    let c = tiny_config();
+    // 10 training sequences, the held-out one, FREE.
+    assert_eq!(s.sequences, 12);
+    assert_eq!(s.timesteps, 10 * 2 + 2 + 3);
+    assert_eq!(s.split_frames, [10 * 2 * 15, 10 * 2, 2 * 16, 3 * 16]);
+    let head = HeadAsset::embedded().expect("head");
+    let model = Arc::new(head.model.clone());
+    let union = out.join("union");
+    for (split, n) in Split::ALL.iter().zip(s.split_frames) {
+        let ds = HeadDataset::open(&union, *split, model.clone()).expect("open split");
+        assert_eq!(ds.len(), n, "{split}");
+        let frames = ds.frames();
+        match split {
+            Split::Val => assert!(frames.iter().all(|f| f.camera_index == c.val_camera)),
+            Split::Train => assert!(frames.iter().all(|f| f.camera_index != c.val_camera)),
+            _ => {
+                let mut cams: Vec<usize> = frames.iter().map(|f| f.camera_index).collect();
+                cams.sort_unstable();
+                cams.dedup();
+                assert_eq!(cams.len(), 16);
+            }
+        }
+        // Paths are VHAP's combined-set paths.
+        assert!(
+            frames[0].image.to_string_lossy().contains("../"),
+            "{:?}",
+            frames[0].image
+        );
+    }
+    // Train and test timesteps are disjoint (novel expression), val shares train's.
+    let ts = |split| -> Vec<usize> {
+        let ds = HeadDataset::open(&union, split, model.clone()).expect("open");
+        let mut t: Vec<usize> = ds.frames().iter().map(|f| f.timestep).collect();
+        t.dedup();
+        t
+    };
+    let (train, val, test) = (ts(Split::Train), ts(Split::Val), ts(Split::Test));
+    assert!(test.iter().all(|t| !train.contains(t)));
+    assert!(val.iter().all(|t| train.contains(t)));
+
+    // An item: the front camera sees the head in the middle and white in the corner; the
+    // mask agrees; the vertices are the pose's; eta is present and not all zero.
+    let ds = HeadDataset::open(&union, Split::Val, model.clone()).expect("val");
+    let item = ds.load_item(0).expect("item");
+    let (w, h) = (item.width(), item.height());
+    let centre = (h / 2) * w + w / 2;
+    assert_eq!(item.mask[centre], 1.0);
+    assert_eq!(item.mask[0], 0.0);
+    assert_eq!(&item.image[0..3], &[1.0, 1.0, 1.0]);
+    assert!(
+        item.image[centre * 3..centre * 3 + 3]
+            .iter()
+            .all(|&x| x < 0.95)
+    );
+    // Anti-aliasing leaves fractional coverage on the silhouette.
+    assert!(item.mask.iter().any(|&m| m > 0.0 && m < 1.0));
+    let param = ds.frames()[0].flame_param.clone().expect("param");
+    let pose = HeadPose::load_npz(&param).expect("pose");
+    let want = lbs(&head.model, &pose).expect("lbs");
+    assert_eq!(item.vertices, want);
+    assert_eq!(item.eta.len(), 128);
+    assert!(item.eta.iter().any(|&x| x != 0.0));
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn interrupted_runs_resume_and_reproduce() {
+    let out = out_dir("resume");
+    let first = generate(&out);
+    assert_eq!(first.skipped_timesteps, 0);
+    let img = out.join("jaw/images/00001_03.png");
+    let before = std::fs::read(&img).expect("image");
+    let json_before = std::fs::read(out.join("union/transforms_train.json")).expect("json");
+    // Lose one image, as if the run had stopped while writing it.
+    std::fs::remove_file(&img).expect("remove");
+    let again = generate(&out);
+    assert_eq!(again.rendered_timesteps, 1);
+    assert_eq!(again.skipped_timesteps, first.timesteps - 1);
+    assert_eq!(std::fs::read(&img).expect("image"), before);
+    assert_eq!(
+        std::fs::read(out.join("union/transforms_train.json")).expect("json"),
+        json_before
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn free_goes_beyond_training_and_test_is_a_new_combination() {
+    let head = HeadAsset::embedded().expect("head");
+    let c = SynthConfig::default();
+    let seqs = synth::sequences::sequences(&c, &head.model, &head.meta);
+    let max_rot = |s: &synth::Sequence| {
+        s.frames
+            .iter()
+            .map(|p| p.rotation.iter().map(|x| x.abs()).fold(0.0, f32::max))
+            .fold(0.0, f32::max)
+    };
+    let max_expr = |s: &synth::Sequence| {
+        s.frames
+            .iter()
+            .map(|p| p.expr.iter().copied().fold(0.0, f32::max))
+            .fold(0.0, f32::max)
+    };
+    let active = |p: &HeadPose| p.expr.iter().filter(|&&x| x > 0.3).count();
+    let train: Vec<_> = seqs
+        .iter()
+        .filter(|s| s.role == synth::Role::Train)
+        .collect();
+    let free = seqs
+        .iter()
+        .find(|s| s.role == synth::Role::Free)
+        .expect("free");
+    let test = seqs
+        .iter()
+        .find(|s| s.role == synth::Role::Test)
+        .expect("test");
+    assert_eq!(train.len(), 10);
+    let train_rot = train.iter().map(|s| max_rot(s)).fold(0.0, f32::max);
+    let train_expr = train.iter().map(|s| max_expr(s)).fold(0.0, f32::max);
+    assert!(
+        max_rot(free) > 1.5 * train_rot,
+        "{} vs {}",
+        max_rot(free),
+        train_rot
+    );
+    assert!(max_expr(free) > train_expr);
+    // No training frame activates as many units at once as the held-out peak.
+    let train_active = train
+        .iter()
+        .flat_map(|s| &s.frames)
+        .map(active)
+        .max()
+        .unwrap_or(0);
+    let test_active = test.frames.iter().map(active).max().unwrap_or(0);
+    assert!(
+        test_active > train_active,
+        "{test_active} vs {train_active}"
+    );
+}
+
+#[test]
+fn wrinkles_change_shading_only_and_eta_encodes_them() {
+    let head = HeadAsset::embedded().expect("head");
+    let app = synth::appearance::bake(&head, 128, 7).expect("bake");
+    let meta = &head.meta;
+    let mut pose = HeadPose::neutral(&head.model);
+    let act0 = app.activations(&pose);
+    assert!(act0.iter().all(|&a| a == 0.0));
+    pose.expr[meta.expr("browInnerUp").expect("unit")] = 1.0;
+    let act = app.activations(&pose);
+    assert_eq!(act[0], 1.0, "forehead lines follow browInnerUp");
+    assert_eq!(act[2], 0.0, "crow's feet do not");
+    // Same geometry, with and without the wrinkles: same mask, darker forehead.
+    let c = SynthConfig {
+        width: 48,
+        height: 64,
+        ..SynthConfig::default()
+    };
+    let cams = synth::cameras::rig(&c, glam::Vec3::new(0.0, -0.02, -0.02));
+    let verts = lbs(&head.model, &pose).expect("lbs");
+    let cam = &cams[c.val_camera];
+    let r = |a: &[f32; 7]| synth::render::render(cam, 2, &verts, &head.mesh, &app, a, 0.5);
+    let (plain, lined) = (r(&act0), r(&act));
+    assert_eq!(plain.mask, lined.mask);
+    let diff: Vec<f32> = plain
+        .rgb
+        .iter()
+        .zip(&lined.rgb)
+        .map(|(a, b)| a - b)
+        .collect();
+    assert!(diff.iter().all(|&d| d >= -1e-6), "wrinkles only darken");
+    let changed: Vec<usize> = (0..diff.len() / 3)
+        .filter(|&p| diff[p * 3] > 0.01)
+        .collect();
+    assert!(!changed.is_empty());
+    // Changed pixels are in the upper part of the face (forehead).
+    let mean_row = changed.iter().map(|&p| (p / 48) as f32).sum::<f32>() / changed.len() as f32;
+    assert!(mean_row < 30.0, "{mean_row}");
+    // Eta without noise is the projection of the activations.
+    let mut rng = texavatars::splat::demo::Pcg::new(1);
+    let e = app.eta(&act, 0.0, &mut rng);
+    let e0 = app.eta(&act0, 0.0, &mut rng);
+    assert!(e0.iter().all(|&x| x == 0.0));
+    assert!(e.iter().map(|x| x * x).sum::<f32>() > 0.1);
+}
