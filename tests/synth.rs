@@ -220,3 +220,41 @@ fn wrinkles_change_shading_only_and_eta_encodes_them() {
     assert!(e0.iter().all(|&x| x == 0.0));
     assert!(e.iter().map(|x| x * x).sum::<f32>() > 0.1);
 }
+
+#[test]
+fn shipped_configs_load_and_the_default_matches_the_code() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let small = SynthConfig::load(&root.join("synth.json")).expect("synth.json");
+    assert_eq!(small, SynthConfig::default());
+    let full = SynthConfig::load(&root.join("synth_802x550.json")).expect("802x550");
+    assert_eq!((full.width, full.height), (550, 802));
+}
+
+#[test]
+fn bad_configs_name_the_file_and_field() {
+    let dir = out_dir("badcfg");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let p = dir.join("c.json");
+    std::fs::write(&p, r#"{"width": 100, "colour": 3}"#).expect("write");
+    let e = SynthConfig::load(&p).unwrap_err().to_string();
+    assert!(e.contains("c.json") && e.contains("colour"), "{e}");
+    std::fs::write(&p, r#"{"val_camera": 16}"#).expect("write");
+    let e = SynthConfig::load(&p).unwrap_err().to_string();
+    assert!(e.contains("c.json") && e.contains("val_camera"), "{e}");
+    std::fs::write(&p, r#"{"width": 10"#).expect("write");
+    let e = SynthConfig::load(&p).unwrap_err().to_string();
+    assert!(e.contains("c.json") && e.contains("line 1"), "{e}");
+    // Through the command line: a non-zero exit and the message.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["synth", "--out"])
+        .arg(dir.join("never"))
+        .arg("--config")
+        .arg(&p)
+        .output()
+        .expect("run");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("c.json"), "{err}");
+    assert!(!dir.join("never").exists(), "nothing written on bad input");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use clap::Args;
 
 use crate::head::HeadAsset;
+use crate::head::teeth::LipRings;
 use crate::synth::{self, SynthConfig};
 
 /// Arguments of `synth`.
@@ -20,6 +21,10 @@ pub struct SynthArgs {
     /// embedded CC0 head.
     #[arg(long)]
     pub head: Option<PathBuf>,
+    /// Add GaussianAvatars' teeth to `--head` (its `.npz` must hold the lip rings
+    /// `lip_outside_ring_upper` and `lip_outside_ring_lower`; see the README).
+    #[arg(long, requires = "head")]
+    pub teeth: bool,
 }
 
 /// Runs `synth`.
@@ -29,6 +34,7 @@ pub fn run(a: SynthArgs) -> anyhow::Result<()> {
         None => SynthConfig::default(),
     };
     let head = match &a.head {
+        Some(p) if a.teeth => HeadAsset::load(p, None)?.with_teeth(&LipRings::load(p)?)?,
         Some(p) => HeadAsset::load(p, None)?,
         None => HeadAsset::embedded()?,
     };

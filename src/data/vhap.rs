@@ -254,6 +254,61 @@ pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
 mod tests {
     use super::*;
 
+    #[test]
+    fn saved_transforms_read_back_with_the_same_cameras() {
+        // A rotated, translated camera: write it as OpenGL c2w, read it as OpenCV w2c.
+        let (c, s) = (0.6f32.cos(), 0.6f32.sin());
+        let w2c = [
+            [c, 0.0, -s, 0.1],
+            [0.0, 1.0, 0.0, -0.2],
+            [s, 0.0, c, 1.3],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let back = opencv_world_to_camera(&opengl_camera_to_world(&w2c));
+        for i in 0..4 {
+            for j in 0..4 {
+                assert!((back[i][j] - w2c[i][j]).abs() < 1e-6, "{back:?}");
+            }
+        }
+        let camera = Camera {
+            width: 20,
+            height: 30,
+            fx: 40.0,
+            fy: 41.0,
+            cx: 10.0,
+            cy: 15.0,
+            world_to_camera: w2c,
+        };
+        let d = dir("save");
+        let p = d.join("transforms_train.json");
+        let rec = FrameRecord {
+            timestep: 3,
+            camera_index: 5,
+            file_path: "../seq/images/00003_05.png".into(),
+            fg_mask_path: "../seq/fg_masks/00003_05.png".into(),
+            flame_param_path: "../seq/flame_param/00003.npz".into(),
+            camera,
+        };
+        save_transforms(&p, &[rec]).expect("save");
+        let frames = load_transforms(&p).expect("load");
+        assert_eq!(frames.len(), 1);
+        let f = &frames[0];
+        assert_eq!((f.timestep, f.camera_index), (3, 5));
+        assert!(f.image.ends_with("../seq/images/00003_05.png"));
+        assert_eq!((f.camera.fx, f.camera.cy, f.camera.width), (40.0, 15.0, 20));
+        for i in 0..4 {
+            for j in 0..4 {
+                assert!((f.camera.world_to_camera[i][j] - w2c[i][j]).abs() < 1e-6);
+            }
+        }
+        assert!(
+            save_transforms(&p, &[])
+                .unwrap_err()
+                .to_string()
+                .contains("frames")
+        );
+    }
+
     fn dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("texavatars-vhap-{}-{name}", std::process::id()));
         std::fs::create_dir_all(&d).expect("dir");
