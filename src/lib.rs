@@ -2,7 +2,8 @@
 //!
 //! The modules follow the data flow: [`data`] (VHAP export) → [`head`] (FLAME-compatible model, skinning) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps,
 //! sample grid, per-face frames) → [`lift`] (local texel attributes to 3D Gaussians) →
-//! [`camera`] → [`splat`] (the differentiable Gaussian rasterizer).
+//! [`camera`] → [`splat`] (the differentiable Gaussian rasterizer) → [`metrics`] (losses and
+//! image metrics, with the pretrained VGG16 / AlexNet weights).
 
 pub mod camera;
 pub mod cli;
@@ -13,6 +14,7 @@ pub mod head;
 pub mod io;
 pub mod lift;
 pub mod mesh;
+pub mod metrics;
 pub mod splat;
 pub mod synth;
 pub mod texel;

@@ -1,9 +1,11 @@
 //! Clap commands: thin wrappers that parse, call the library and report.
 
 pub mod head;
+pub mod metrics;
 pub mod splat;
 pub mod synth;
 pub mod uv;
+pub mod weights;
 
 use clap::{Parser, Subcommand};
 
@@ -21,6 +23,9 @@ pub enum Command {
     /// Head models: import the default head, print a summary.
     #[command(subcommand)]
     Head(head::HeadCommand),
+    /// PSNR, SSIM and LPIPS (alex, vgg, GaussianAvatars' unscaled variant) between two
+    /// images, printed as one JSON object.
+    Metrics(metrics::MetricsArgs),
     /// The Gaussian rasterizer on its own.
     #[command(subcommand)]
     Splat(splat::SplatCommand),
@@ -29,14 +34,19 @@ pub enum Command {
     /// UV layouts of meshes.
     #[command(subcommand)]
     Uv(uv::UvCommand),
+    /// Pretrained VGG16 / AlexNet weights for the perceptual loss and LPIPS.
+    #[command(subcommand)]
+    Weights(weights::WeightsCommand),
 }
 
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Head(c) => head::run(c),
+        Command::Metrics(a) => metrics::run(a),
         Command::Splat(c) => splat::run(c),
         Command::Synth(a) => synth::run(a),
         Command::Uv(c) => uv::run(c),
+        Command::Weights(c) => weights::run(c),
     }
 }

@@ -47,3 +47,44 @@ pub fn write_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Resul
         .map_err(|e| Error::invalid(tmp.display().to_string(), "png", e.to_string()))?;
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
+
+/// An RGB image read from a file, values in [0, 1].
+#[derive(Clone, Debug, PartialEq)]
+pub struct RgbImage {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// [H, W, 3] row-major values (8-bit files give value / 255, 16-bit value / 65535).
+    pub rgb: Vec<f32>,
+}
+
+/// Reads a grayscale or RGB PNG (8 or 16 bit) as [H, W, 3] floats in [0, 1]. Images with an
+/// alpha channel are refused: composite them onto their background first, so that a metric
+/// never silently ignores transparency.
+pub fn read_rgb(path: &Path) -> Result<RgbImage> {
+    let what = path.display().to_string();
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| Error::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?;
+    let img = reader
+        .decode()
+        .map_err(|e| Error::invalid(&what, "image", format!("cannot decode: {e}")))?;
+    if img.color().has_alpha() {
+        return Err(Error::invalid(
+            &what,
+            "image",
+            format!(
+                "has an alpha channel ({:?}); composite it onto its background first",
+                img.color()
+            ),
+        ));
+    }
+    let rgb = img.to_rgb32f();
+    Ok(RgbImage {
+        width: rgb.width() as usize,
+        height: rgb.height() as usize,
+        rgb: rgb.into_raw(),
+    })
+}

@@ -1,0 +1,90 @@
+//! `texavatars metrics`: PSNR, SSIM and LPIPS between two images, as one JSON object.
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use crate::device::BackendKind;
+use crate::io::image::read_rgb;
+use crate::metrics::{self, Lpips, Net};
+
+/// Arguments of `metrics`.
+#[derive(Debug, Args)]
+pub struct MetricsArgs {
+    /// The ground-truth image (PNG, RGB or grayscale, 8 or 16 bit).
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// The image to score, same size.
+    #[arg(long)]
+    pub image: PathBuf,
+    /// Only PSNR and SSIM (no LPIPS, no weights needed).
+    #[arg(long)]
+    pub no_lpips: bool,
+    /// Where the networks run. Defaults to flex: on the CPU, burn-ndarray's convolutions
+    /// make LPIPS-VGG about 12x slower than burn-flex's.
+    #[arg(long, value_enum, default_value_t = BackendKind::Flex)]
+    pub backend: BackendKind,
+}
+
+/// The numbers `metrics` prints. PSNR is `null` for identical images (infinite).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Scores {
+    pub psnr: f64,
+    pub ssim: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lpips_alex: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lpips_vgg: Option<f64>,
+    /// LPIPS-alex fed [0, 1] images without mapping them to [-1, 1] (GaussianAvatars'
+    /// evaluation code; not LPIPS as defined).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lpips_alex_unscaled_inputs: Option<f64>,
+}
+
+/// Scores `image` against `reference` on `backend`.
+pub fn score(
+    reference: &std::path::Path,
+    image: &std::path::Path,
+    lpips: bool,
+    backend: BackendKind,
+) -> anyhow::Result<Scores> {
+    let r = read_rgb(reference)?;
+    let i = read_rgb(image)?;
+    if (r.width, r.height) != (i.width, i.height) {
+        anyhow::bail!(
+            "{}: size {}x{} differs from the reference {} ({}x{})",
+            image.display(),
+            i.width,
+            i.height,
+            reference.display(),
+            r.width,
+            r.height
+        );
+    }
+    let device = backend.device();
+    let a = metrics::image_tensor(&i, &device);
+    let b = metrics::image_tensor(&r, &device);
+    let first = |t| metrics::to_host(t)[0];
+    let mut s = Scores {
+        psnr: first(metrics::psnr(a.clone(), b.clone())),
+        ssim: first(metrics::ssim(a.clone(), b.clone())),
+        lpips_alex: None,
+        lpips_vgg: None,
+        lpips_alex_unscaled_inputs: None,
+    };
+    if lpips {
+        let alex = Lpips::load(Net::AlexNet, &device)?;
+        let vgg = Lpips::load(Net::Vgg16, &device)?;
+        s.lpips_alex = Some(first(alex.distance(a.clone(), b.clone())));
+        s.lpips_alex_unscaled_inputs = Some(first(alex.distance_raw(a.clone(), b.clone())));
+        s.lpips_vgg = Some(first(vgg.distance(a, b)));
+    }
+    Ok(s)
+}
+
+/// Runs `metrics`.
+pub fn run(a: MetricsArgs) -> anyhow::Result<()> {
+    let s = score(&a.reference, &a.image, !a.no_lpips, a.backend)?;
+    println!("{}", serde_json::to_string(&s)?);
+    Ok(())
+}

@@ -1,0 +1,92 @@
+//! SSIM in the form 3DGS and GaussianAvatars train and evaluate with: an 11x11 Gaussian
+//! window (sigma 1.5) applied per channel as a "same"-size convolution with zero padding,
+//! C1 = 0.01^2, C2 = 0.03^2, the SSIM map averaged over all pixels and channels.
+//!
+//! The window is separable, so it is applied as a 1x11 then an 11x1 convolution (exactly the
+//! 2D window, zero padding included). Plain tensor ops: differentiable on an autodiff device.
+
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Tensor, TensorData};
+
+use crate::metrics::constants::{SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW};
+
+/// The normalised 1D Gaussian window (the 2D window is its outer product).
+pub fn gaussian_window() -> Vec<f32> {
+    let c = (SSIM_WINDOW / 2) as f64;
+    let g: Vec<f64> = (0..SSIM_WINDOW)
+        .map(|x| (-(x as f64 - c).powi(2) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp())
+        .collect();
+    let s: f64 = g.iter().sum();
+    g.iter().map(|v| (v / s) as f32).collect()
+}
+
+/// Blurs every channel of `x` with the Gaussian window, zero padding, same size.
+///
+/// # Shapes
+/// - `x`: [N, C, H, W]
+/// - returns [N, C, H, W]
+pub fn gaussian_blur(x: Tensor<4>) -> Tensor<4> {
+    let [n, c, h, w] = x.dims();
+    let device = x.device();
+    let g = gaussian_window();
+    let r = SSIM_WINDOW / 2;
+    let kx = Tensor::<4>::from_data(TensorData::new(g.clone(), [1, 1, 1, SSIM_WINDOW]), &device);
+    let ky = Tensor::<4>::from_data(TensorData::new(g, [1, 1, SSIM_WINDOW, 1]), &device);
+    let x = x.reshape([n * c, 1, h, w]);
+    let x = conv2d(x, kx, None, ConvOptions::new([1, 1], [0, r], [1, 1], 1));
+    let x = conv2d(x, ky, None, ConvOptions::new([1, 1], [r, 0], [1, 1], 1));
+    x.reshape([n, c, h, w])
+}
+
+/// The SSIM map.
+///
+/// # Shapes
+/// - `a`, `b`: [N, C, H, W], values in [0, 1]
+/// - returns [N, C, H, W]
+pub fn ssim_map(a: Tensor<4>, b: Tensor<4>) -> Tensor<4> {
+    let [n, c, h, w] = a.dims();
+    let stack = Tensor::cat(
+        vec![
+            a.clone(),
+            b.clone(),
+            a.clone() * a.clone(),
+            b.clone() * b.clone(),
+            a * b,
+        ],
+        1,
+    );
+    let m = gaussian_blur(stack);
+    let part = |k: usize| m.clone().narrow(1, k * c, c);
+    let (mu1, mu2) = (part(0), part(1));
+    let mu11 = mu1.clone() * mu1.clone();
+    let mu22 = mu2.clone() * mu2.clone();
+    let mu12 = mu1 * mu2;
+    let s11 = part(2) - mu11.clone();
+    let s22 = part(3) - mu22.clone();
+    let s12 = part(4) - mu12.clone();
+    let num = (mu12 * 2.0 + SSIM_C1) * (s12 * 2.0 + SSIM_C2);
+    let den = (mu11 + mu22 + SSIM_C1) * (s11 + s22 + SSIM_C2);
+    let map = num / den;
+    debug_assert_eq!(map.dims(), [n, c, h, w]);
+    map
+}
+
+/// SSIM per image: the map's mean over channels and pixels.
+///
+/// # Shapes
+/// - `a`, `b`: [N, C, H, W], values in [0, 1]
+/// - returns [N]
+pub fn ssim(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
+    let dims = a.dims();
+    crate::metrics::mean_per_image(ssim_map(a, b), dims)
+}
+
+/// The SSIM training loss `1 - SSIM`, averaged over the batch.
+///
+/// # Shapes
+/// - `a`, `b`: [N, C, H, W], values in [0, 1]
+/// - returns [1]
+pub fn ssim_loss(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
+    ssim(a, b).mean().neg() + 1.0
+}
