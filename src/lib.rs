@@ -1,8 +1,10 @@
 //! texavatars: hybrid texel-3D Gaussian head avatars (TexAvatars, 3DV 2026) on burn.
 //!
-//! The modules follow the data flow: [`data`] (VHAP export) → [`head`] (FLAME-compatible model, skinning) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps,
-//! sample grid, per-face frames) → [`lift`] (local texel attributes to 3D Gaussians) →
-//! [`camera`] → [`splat`] (the differentiable Gaussian rasterizer).
+//! The modules follow the data flow: [`data`] (VHAP export) → [`head`] (FLAME-compatible
+//! model, skinning) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps, sample grid,
+//! per-face frames) → [`model`] (the networks: condition and camera to local texel
+//! attributes) → [`lift`] (local texel attributes to 3D Gaussians) → [`camera`] →
+//! [`splat`] (the differentiable Gaussian rasterizer).
 
 pub mod camera;
 pub mod cli;
@@ -13,6 +15,7 @@ pub mod head;
 pub mod io;
 pub mod lift;
 pub mod mesh;
+pub mod model;
 pub mod splat;
 pub mod synth;
 pub mod texel;

@@ -296,9 +296,9 @@ mod tests {
         assert_eq!((f.timestep, f.camera_index), (3, 5));
         assert!(f.image.ends_with("../seq/images/00003_05.png"));
         assert_eq!((f.camera.fx, f.camera.cy, f.camera.width), (40.0, 15.0, 20));
-        for i in 0..4 {
-            for j in 0..4 {
-                assert!((f.camera.world_to_camera[i][j] - w2c[i][j]).abs() < 1e-6);
+        for (row, expected) in f.camera.world_to_camera.iter().zip(&w2c) {
+            for (a, b) in row.iter().zip(expected) {
+                assert!((a - b).abs() < 1e-6);
             }
         }
         assert!(
