@@ -1,9 +1,12 @@
 //! texavatars: hybrid texel-3D Gaussian head avatars (TexAvatars, 3DV 2026) on burn.
 //!
-//! The modules follow the data flow: [`data`] (VHAP export) → [`head`] (FLAME-compatible model, skinning) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps,
-//! sample grid, per-face frames) → [`lift`] (local texel attributes to 3D Gaussians) →
-//! [`camera`] → [`splat`] (the differentiable Gaussian rasterizer) → [`metrics`] (losses and
-//! image metrics, with the pretrained VGG16 / AlexNet weights).
+//! The modules follow the data flow: [`data`] (VHAP export, dataset) → [`head`]
+//! (FLAME-compatible model, skinning, the default head) → [`synth`] (the synthetic
+//! benchmark) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps, sample grid, per-face
+//! frames) → [`model`] (the networks: condition and camera to local texel attributes) →
+//! [`lift`] (local texel attributes to 3D Gaussians) → [`camera`] → [`splat`] (the
+//! differentiable Gaussian rasterizer) → [`metrics`] (losses and image metrics, with the
+//! pretrained VGG16 / AlexNet weights).
 
 pub mod camera;
 pub mod cli;
@@ -15,6 +18,7 @@ pub mod io;
 pub mod lift;
 pub mod mesh;
 pub mod metrics;
+pub mod model;
 pub mod splat;
 pub mod synth;
 pub mod texel;
