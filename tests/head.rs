@@ -295,3 +295,45 @@ fn bad_model_files_name_file_and_field() {
         .to_string();
     assert!(e.contains("absent.npz"), "{e}");
 }
+
+#[test]
+fn non_finite_parameters_name_the_file_and_field() {
+    let dir = std::env::temp_dir().join(format!("texavatars-nan-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("dir");
+    let p = dir.join("00000.npz");
+    let mut pose = HeadPose {
+        expr: vec![0.0, f32::NAN],
+        ..Default::default()
+    };
+    let e = pose.save_npz(&p).unwrap_err().to_string();
+    assert!(e.contains("expr") && e.contains("00000.npz"), "{e}");
+    assert!(!p.exists(), "nothing written");
+    // A file written by someone else with an infinite rotation.
+    pose.expr = vec![0.0, 0.0];
+    pose.save_npz(&p).expect("save");
+    texavatars::io::npz::NpzOut::default()
+        .floats("translation", &[1, 3], vec![0.0; 3])
+        .floats("rotation", &[1, 3], vec![0.0, f32::INFINITY, 0.0])
+        .floats("neck_pose", &[1, 3], vec![0.0; 3])
+        .floats("jaw_pose", &[1, 3], vec![0.0; 3])
+        .floats("eyes_pose", &[1, 6], vec![0.0; 6])
+        .floats("expr", &[1, 2], vec![0.0; 2])
+        .floats("shape", &[0], vec![])
+        .write(&p)
+        .expect("write");
+    let e = HeadPose::load_npz(&p).unwrap_err().to_string();
+    assert!(e.contains("rotation") && e.contains("00000.npz"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn non_finite_model_arrays_are_rejected() {
+    let mut m = tiny();
+    m.v_template[1][2] = f32::NAN;
+    let e = m.validate("m.npz").unwrap_err().to_string();
+    assert!(e.contains("m.npz") && e.contains("v_template"), "{e}");
+    let mut m = tiny();
+    m.weights[0] = f32::INFINITY;
+    let e = m.validate("m.npz").unwrap_err().to_string();
+    assert!(e.contains("weights"), "{e}");
+}

@@ -64,6 +64,18 @@ fn benchmark_reads_back_through_the_loader_with_the_protocol_splits() {
             frames[0].image
         );
     }
+    // Every timestep of every split shows the head (front camera): no empty frames.
+    for split in Split::ALL {
+        let ds = HeadDataset::open(&union, split, model.clone()).expect("open split");
+        for i in 0..ds.len() {
+            if ds.frames()[i].camera_index != c.val_camera {
+                continue;
+            }
+            let item = ds.load_item(i).expect("item");
+            let fg = item.mask.iter().filter(|&&m| m > 0.5).count();
+            assert!(fg > 50, "{split} item {i}: {fg} foreground pixels");
+        }
+    }
     // Train and test timesteps are disjoint (novel expression), val shares train's.
     let ts = |split| -> Vec<usize> {
         let ds = HeadDataset::open(&union, split, model.clone()).expect("open");

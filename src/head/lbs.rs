@@ -50,6 +50,38 @@ impl HeadPose {
         ]
     }
 
+    /// Fails, naming `what` and the field (VHAP's key), when any value is NaN or infinite.
+    pub fn check_finite(&self, what: &str) -> Result<()> {
+        let fields: [(&str, &[f32]); 7] = [
+            ("shape", &self.shape),
+            ("expr", &self.expr),
+            ("rotation", &self.rotation),
+            ("neck_pose", &self.neck),
+            ("jaw_pose", &self.jaw),
+            ("eyes_pose", &self.eyes),
+            ("translation", &self.translation),
+        ];
+        for (name, values) in fields {
+            if let Some(i) = values.iter().position(|x| !x.is_finite()) {
+                return Err(Error::invalid(
+                    what,
+                    name,
+                    format!("value {i} is {}", values[i]),
+                ));
+            }
+        }
+        if let Some(o) = &self.static_offset
+            && let Some(i) = o.iter().position(|p| p.iter().any(|x| !x.is_finite()))
+        {
+            return Err(Error::invalid(
+                what,
+                "static_offset",
+                format!("vertex {i} is {:?}", o[i]),
+            ));
+        }
+        Ok(())
+    }
+
     /// The 15-value pose vector `[global 3, neck 3, jaw 3, eyes 6]`.
     pub fn pose15(&self) -> [f32; 15] {
         let mut p = [0.0f32; 15];
@@ -170,6 +202,7 @@ pub fn joints(model: &HeadModel, pose: &HeadPose) -> Vec<[f32; 3]> {
 /// Poses the model: returns the posed vertices [V].
 pub fn lbs(model: &HeadModel, pose: &HeadPose) -> Result<Vec<[f32; 3]>> {
     let what = "head pose";
+    pose.check_finite(what)?;
     let v = model.num_vertices();
     let j = model.num_joints();
     if pose.shape.len() > model.num_shape {

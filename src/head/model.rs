@@ -81,6 +81,22 @@ impl HeadModel {
         )?;
         expect("J_regressor", self.j_regressor.len(), j * v)?;
         expect("weights", self.weights.len(), v * j)?;
+        let arrays: [(&str, &[f32]); 5] = [
+            ("v_template", self.v_template.as_flattened()),
+            ("shapedirs", &self.shapedirs),
+            ("posedirs", &self.posedirs),
+            ("J_regressor", &self.j_regressor),
+            ("weights", &self.weights),
+        ];
+        for (field, values) in arrays {
+            if let Some(i) = values.iter().position(|x| !x.is_finite()) {
+                return Err(Error::invalid(
+                    what,
+                    field,
+                    format!("value {i} is {}", values[i]),
+                ));
+            }
+        }
         for (i, p) in self.parents.iter().enumerate() {
             match p {
                 None if i != 0 => {

@@ -39,7 +39,7 @@ impl HeadPose {
         } else {
             None
         };
-        Ok(HeadPose {
+        let pose = HeadPose {
             shape: z.floats("shape")?.data,
             expr: z.floats("expr")?.data,
             rotation: fixed(&mut z, &what, "rotation")?,
@@ -48,11 +48,14 @@ impl HeadPose {
             eyes: fixed(&mut z, &what, "eyes_pose")?,
             translation: fixed(&mut z, &what, "translation")?,
             static_offset,
-        })
+        };
+        pose.check_finite(&what)?;
+        Ok(pose)
     }
 
     /// Writes the parameters in VHAP's layout.
     pub fn save_npz(&self, path: &Path) -> Result<()> {
+        self.check_finite(&path.display().to_string())?;
         let mut out = NpzOut::default();
         out.floats("translation", &[1, 3], self.translation.to_vec())
             .floats("rotation", &[1, 3], self.rotation.to_vec())

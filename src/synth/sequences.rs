@@ -254,7 +254,8 @@ pub fn sequences(config: &SynthConfig, model: &HeadModel, meta: &HeadMeta) -> Ve
         .map(|f| {
             let t = f as f32 / (n - 1) as f32;
             let mut pose = HeadPose::neutral(model);
-            let a = (PI * t).sin().powf(0.7);
+            // max(0): sin(pi) is slightly negative in f32, and a negative base has no power.
+            let a = (PI * t).sin().max(0.0).powf(0.7);
             for &m in &members {
                 pose.expr[m] = 0.85 * a;
             }
