@@ -13,6 +13,7 @@ pub mod cli;
 pub mod data;
 pub mod device;
 pub mod error;
+pub mod eval;
 pub mod head;
 pub mod io;
 pub mod lift;
