@@ -113,8 +113,11 @@ pub struct Means {
 /// identical pair (infinite PSNR) is counted at [`PSNR_CAP`].
 #[derive(Clone, Debug, Default)]
 pub struct Tally {
-    sums: BTreeMap<String, (usize, f64, f64, [f64; 3], [usize; 3])>,
+    sums: BTreeMap<String, Sums>,
 }
+
+/// Per split: images, PSNR sum, SSIM sum, LPIPS sums (alex, vgg, alex unscaled) and counts.
+type Sums = (usize, f64, f64, [f64; 3], [usize; 3]);
 
 /// PSNR used for a perfect match when averaging (100 dB).
 pub const PSNR_CAP: f64 = 100.0;
@@ -264,7 +267,7 @@ mod tests {
 
     #[test]
     fn scorer_without_lpips() {
-        let d = Device::ndarray();
+        let d = crate::device::BackendKind::Cpu.device();
         let s = Scorer::new(&d, false).expect("scorer");
         let a = vec![0.25f32; 8 * 8 * 3];
         let mut b = a.clone();
