@@ -457,13 +457,13 @@ fn shipped_training_configs_load() {
             (6e-4, 4e-4, 1e-15),
             "{name}"
         );
-        assert_eq!(c.vgg_start, 0.5, "{name}");
         assert_eq!(c.loss, LossWeights::default(), "{name}");
     }
     let paper = TrainConfig::load(&dir.join("train_paper.json")).unwrap();
     assert_eq!(paper.net_config().unwrap(), &NetConfig::paper());
     assert_eq!(paper.iterations, 600_000);
     assert_eq!(paper.vgg_from(), 300_000);
+    assert_eq!(paper.ablations, Ablations::default());
     // Unknown fields and bad values name the field.
     let bad = out_dir("badconfig");
     std::fs::create_dir_all(&bad).unwrap();

@@ -37,9 +37,24 @@ pub struct TrainArgs {
 /// Runs `train`.
 pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let config = TrainConfig::load(&a.config)?;
+    let backend = a.backend.unwrap_or(config.backend);
+    // burn 0.22 restores a checkpoint's optimiser state on `Device::default()`
+    // (`ModuleOptimizer::load_record`), which is wgpu whenever that backend is compiled in: a
+    // resumed CPU run would start the Vulkan driver only to move the state off it on the first
+    // step. `BURN_DEVICE` points the default at the run's backend (unless the user set it).
+    if std::env::var_os("BURN_DEVICE").is_none() {
+        let name = match backend {
+            BackendKind::Cpu => "ndarray",
+            BackendKind::Flex => "flex",
+            BackendKind::Wgpu => "wgpu",
+        };
+        // SAFETY: called from `main` right after parsing the command line, before anything
+        // has started a thread that could read the environment concurrently.
+        unsafe { std::env::set_var("BURN_DEVICE", name) };
+    }
     let mut options = TrainOptions::new(&a.data, &a.out);
     options.resume = a.resume;
-    options.backend = a.backend;
+    options.backend = Some(backend);
     options.head = match &a.head {
         Some(p) => Some(HeadAsset::load(p, None)?),
         None => None,

@@ -65,7 +65,7 @@ pub fn pass_order(seed: u64, pass: usize, n: usize) -> Vec<usize> {
     );
     let mut order: Vec<usize> = (0..n).collect();
     for i in (1..n).rev() {
-        let j = (rng.next_u32() as u64 * (i as u64 + 1) >> 32) as usize;
+        let j = ((rng.next_u32() as u64 * (i as u64 + 1)) >> 32) as usize;
         order.swap(i, j);
     }
     order

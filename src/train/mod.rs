@@ -81,8 +81,8 @@ pub struct TrainOptions {
     /// Install burn's application logger (`out/experiment.log`); it is process-global, so
     /// library callers that train several times may turn it off.
     pub app_log: bool,
-    /// Stop after this many iterations of this process (the run's count continues; used to
-    /// simulate an interrupted run).
+    /// Stop at the first checkpoint after at least this many iterations of this process (the
+    /// run's count continues with `--resume`; tests use it to interrupt a run).
     pub stop_after: Option<usize>,
 }
 
@@ -183,6 +183,10 @@ pub fn optimizer(config: &TrainConfig) -> ModuleOptimizer {
 
 /// Trains the avatar of `config` on `options.data` (see the module documentation), writes
 /// `out/avatar.bpk` and returns the trained avatar.
+///
+/// A resumed run restores the optimiser state on burn's `Device::default()` first (burn
+/// 0.22); set `BURN_DEVICE` to the run's backend to keep a CPU run off wgpu (the `train`
+/// command does).
 ///
 /// Before anything runs, the data is checked against the avatar (vertex count, image size)
 /// and, when the VGG loss is on, the VGG16 weights must be installed (`texavatars weights

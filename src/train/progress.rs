@@ -88,7 +88,7 @@ impl ProgressPrinter {
         });
         let timing = match per_it {
             Some(s) => format!(
-                "  {:.3} s/it  ~{} left",
+                "  {:.3} s/it  ~{} left at this rate",
                 s,
                 duration(s * (self.schedule.total - iteration) as f64)
             ),
