@@ -484,3 +484,43 @@ fn shipped_training_configs_load() {
             .contains("iterations")
     );
 }
+
+#[test]
+fn train_command_runs_and_resumes() {
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
+    let out = out_dir("cli");
+    let run = |resume: bool| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"));
+        cmd.args(["train", "--backend", "flex", "--data"])
+            .arg(data())
+            .arg("--config")
+            .arg(&config)
+            .arg("--out")
+            .arg(&out)
+            .env_remove("BURN_DEVICE");
+        if resume {
+            cmd.arg("--resume");
+        }
+        let o = cmd.output().expect("run texavatars");
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        );
+        assert!(o.status.success(), "{stdout}\n{stderr}");
+        (stdout, stderr)
+    };
+    let (stdout, stderr) = run(false);
+    assert!(stdout.contains("trained iterations 0..20"), "{stdout}");
+    // Progress lines with every term, and a validation line per checkpoint.
+    assert!(stderr.contains("train  it 20/20"), "{stderr}");
+    assert!(stderr.contains("valid  it 10"), "{stderr}");
+    for term in ["Loss", "L1", "D-SSIM", "VGG", "L_pos", "L_scale", "PSNR"] {
+        assert!(stderr.contains(term), "{term}: {stderr}");
+    }
+    assert!(out.join(files::AVATAR).is_file());
+    // A finished run resumes to its end without training again (and without wgpu: the
+    // optimiser state is restored on the run's backend).
+    let (stdout, stderr) = run(true);
+    assert!(stdout.contains("trained iterations 20..20"), "{stdout}");
+    assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
+}

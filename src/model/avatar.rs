@@ -16,6 +16,7 @@ use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
+use super::constants::BACKGROUND;
 use super::net::{LocalMaps, NetConfig, TexAvatarNet};
 use crate::camera::Camera;
 use crate::data::HeadBatch;
@@ -24,10 +25,6 @@ use crate::lift::{self, LiftMode, LiftParams, Topology};
 use crate::mesh::UvMesh;
 use crate::splat::{self, Gaussians, SplatParams};
 use crate::texel::FrameKind;
-
-/// The background the avatar is rendered on and the ground truth is composited on (method
-/// §1, §5: white).
-pub const BACKGROUND: [f32; 3] = [1.0, 1.0, 1.0];
 
 /// The paper's ablation switches (method §7). `true` everywhere is the full method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
