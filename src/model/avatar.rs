@@ -145,12 +145,42 @@ impl AvatarConfig {
         }
         Ok(Avatar {
             net: self.effective_net().init(device)?,
-            lift: LiftParams {
+            lift: LiftSetup(LiftParams {
                 topology,
                 mode: self.lift_mode(),
                 frame: self.frame_kind(),
-            },
+            }),
         })
+    }
+}
+
+/// The lifting set-up of an [`Avatar`] ([`LiftParams`], which it dereferences to), with a
+/// one-line `Debug` (burn prints a module's non-module fields with it; the topology's tables
+/// would fill pages).
+#[derive(Clone)]
+pub struct LiftSetup(pub LiftParams);
+
+impl std::ops::Deref for LiftSetup {
+    type Target = LiftParams;
+
+    fn deref(&self) -> &LiftParams {
+        &self.0
+    }
+}
+
+impl std::fmt::Debug for LiftSetup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let t = &self.topology;
+        write!(
+            f,
+            "LiftSetup {{ R: {}, S: {}, gaussians: {}, faces: {}, mode: {:?}, frame: {:?} }}",
+            t.res(),
+            t.samples.size,
+            t.len(),
+            t.faces.len(),
+            self.mode,
+            self.frame
+        )
     }
 }
 
@@ -161,7 +191,7 @@ pub struct Avatar {
     pub net: TexAvatarNet,
     /// The texel set-up, lift mode and frame kind (not a parameter; not saved).
     #[module(skip)]
-    pub lift: LiftParams,
+    pub lift: LiftSetup,
 }
 
 /// What [`Avatar::forward`] returns.
@@ -207,7 +237,7 @@ impl Avatar {
     /// # Shapes
     /// - `vertices`: [V, 3]
     pub fn gaussians(&self, maps: &LocalMaps, i: usize, vertices: Tensor<2>) -> Result<Gaussians> {
-        let lifted = lift::lift(maps.frame(i), vertices, &self.lift)?;
+        let lifted = lift::lift(maps.frame(i), vertices, &self.lift.0)?;
         Ok(Gaussians {
             means: lifted.means,
             cov6: lifted.cov6,

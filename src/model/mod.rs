@@ -14,7 +14,7 @@ pub mod layers;
 pub mod net;
 pub mod pluecker;
 
-pub use avatar::{Ablations, Avatar, AvatarConfig, AvatarOutput};
+pub use avatar::{Ablations, Avatar, AvatarConfig, AvatarOutput, LiftSetup};
 pub use decoders::{
     AppearanceDecoder, AppearanceDecoderConfig, Exp2Code, Exp2CodeConfig, GeometryDecoder,
     GeometryDecoderConfig, ViewEncoder, ViewEncoderConfig,

@@ -31,6 +31,8 @@ pub struct ProgressPrinter {
     names: HashMap<MetricId, String>,
     train: HashMap<String, Window>,
     valid_final: HashMap<String, f64>,
+    /// Frames of the current validation pass (none: no line).
+    valid_items: usize,
     split: &'static str,
     /// 1-based burn epoch of the current split.
     epoch: usize,
@@ -50,6 +52,7 @@ impl ProgressPrinter {
             names: HashMap::new(),
             train: HashMap::new(),
             valid_final: HashMap::new(),
+            valid_items: 0,
             split: "train",
             epoch: 1,
             start_iteration: 0,
@@ -172,10 +175,14 @@ impl TrainingProgressLogger for ProgressPrinter {
         self.split = if split == "valid" { "valid" } else { "train" };
         if self.split == "valid" {
             self.valid_final.clear();
+            self.valid_items = 0;
         }
     }
 
     fn update_split(&mut self, items_processed: usize) {
+        if self.split == "valid" {
+            self.valid_items = items_processed;
+        }
         if self.split != "train" || self.log_every == 0 {
             return;
         }
@@ -186,7 +193,7 @@ impl TrainingProgressLogger for ProgressPrinter {
     }
 
     fn end_split(&mut self) {
-        if self.split == "valid" && !self.valid_final.is_empty() {
+        if self.split == "valid" && self.valid_items > 0 && !self.valid_final.is_empty() {
             let values: Vec<(String, f64)> = self
                 .valid_final
                 .iter()
