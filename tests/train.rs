@@ -530,3 +530,24 @@ fn train_command_runs_and_resumes() {
     assert!(stdout.contains("trained iterations 20..20"), "{stdout}");
     assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
 }
+
+#[test]
+fn an_export_without_a_validation_split_trains_without_validation() {
+    let noval = data().parent().unwrap().join("union_noval");
+    std::fs::create_dir_all(&noval).unwrap();
+    std::fs::copy(
+        data().join("transforms_train.json"),
+        noval.join("transforms_train.json"),
+    )
+    .unwrap();
+    let mut c = tiny_config();
+    c.iterations = 2;
+    c.checkpoint_every = 1;
+    c.val_frames = 3;
+    let out = out_dir("noval");
+    let mut o = options(&out, BackendKind::Flex);
+    o.data = noval;
+    let r = train::train(&c, &o).unwrap();
+    assert_eq!(r.end_iteration, 2);
+    assert!(r.avatar_path.is_file());
+}

@@ -330,10 +330,19 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         }
     );
 
+    // Validation: the held-out camera's frames when the export has them.
+    let val_file = options.data.join(Split::Val.file_name());
+    let valid_loader = if config.val_frames > 0 && val_file.is_file() {
+        let val_set = Arc::new(HeadDataset::open(&options.data, Split::Val, model)?);
+        let val_indices = FrameLoader::spread(val_set.len(), config.val_frames);
+        FrameLoader::fixed(val_set, val_indices, &device.clone().inner())
+    } else {
+        if config.val_frames > 0 {
+            eprintln!("train: no {}: no validation", val_file.display());
+        }
+        FrameLoader::fixed(train_set.clone(), Vec::new(), &device.clone().inner())
+    };
     let train_loader = FrameLoader::training(train_set, schedule.clone(), start_epoch, &device);
-    let val_set = Arc::new(HeadDataset::open(&options.data, Split::Val, model)?);
-    let val_indices = FrameLoader::spread(val_set.len(), config.val_frames);
-    let valid_loader = FrameLoader::fixed(val_set, val_indices, &device.clone().inner());
 
     let mut builder = SupervisedTraining::new(out, Arc::new(train_loader), Arc::new(valid_loader))
         .metrics((
