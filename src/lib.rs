@@ -6,7 +6,8 @@
 //! frames) → [`model`] (the networks: condition and camera to local texel attributes) →
 //! [`lift`] (local texel attributes to 3D Gaussians) → [`camera`] → [`splat`] (the
 //! differentiable Gaussian rasterizer) → [`metrics`] (losses and image metrics, with the
-//! pretrained VGG16 / AlexNet weights).
+//! pretrained VGG16 / AlexNet weights) → [`train`] (the objective and training through
+//! burn's learner).
 
 pub mod camera;
 pub mod cli;
@@ -23,6 +24,7 @@ pub mod model;
 pub mod splat;
 pub mod synth;
 pub mod texel;
+pub mod train;
 
 pub use burn;
 pub use texavatars_kernels as kernels;

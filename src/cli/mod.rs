@@ -4,6 +4,7 @@ pub mod head;
 pub mod metrics;
 pub mod splat;
 pub mod synth;
+pub mod train;
 pub mod uv;
 pub mod weights;
 
@@ -31,6 +32,8 @@ pub enum Command {
     Splat(splat::SplatCommand),
     /// Render the synthetic multi-view head benchmark (VHAP / GaussianAvatars format).
     Synth(synth::SynthArgs),
+    /// Train an avatar on a VHAP export (e.g. the synthetic benchmark's `union` folder).
+    Train(train::TrainArgs),
     /// UV layouts of meshes.
     #[command(subcommand)]
     Uv(uv::UvCommand),
@@ -46,6 +49,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Metrics(a) => metrics::run(a),
         Command::Splat(c) => splat::run(c),
         Command::Synth(a) => synth::run(a),
+        Command::Train(a) => train::run(a),
         Command::Uv(c) => uv::run(c),
         Command::Weights(c) => weights::run(c),
     }

@@ -55,10 +55,15 @@ impl VggPerceptual {
         let device = a.device();
         let mean = channel_constant(IMAGENET_MEAN, &device);
         let std = channel_constant(IMAGENET_STD, &device);
-        let x = (Tensor::cat(vec![a, b], 0) - mean) / std;
+        // Two passes rather than one over the concatenated pair: a reference image that
+        // needs no gradient (a ground truth) then stays off the autodiff graph, and the
+        // backward pass runs through the VGG for `a` alone (measured: a fifth less time per
+        // training step with the VGG loss on, at 138 x 200 on 2 CPU cores).
+        let fa = self.features.forward((a - mean.clone()) / std.clone());
+        let fb = self.features.forward((b - mean) / std);
         let mut total: Option<Tensor<1>> = None;
-        for f in self.features.forward(x) {
-            let d = (f.clone().narrow(0, 0, n) - f.narrow(0, n, n)).abs();
+        for (fa, fb) in fa.into_iter().zip(fb) {
+            let d = (fa - fb).abs();
             let [_, c, h, w] = d.dims();
             let m = d.reshape([n * c * h * w]).mean();
             total = Some(match total {

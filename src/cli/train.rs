@@ -1,0 +1,72 @@
+//! `texavatars train`: train an avatar on a VHAP export.
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use crate::device::BackendKind;
+use crate::head::HeadAsset;
+use crate::train::{self, TrainConfig, TrainOptions};
+
+/// Arguments of `train`.
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// The export's split folder with `transforms_{train,val}.json` (`OUT/union` of
+    /// `texavatars synth`).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Training config (see configs/train_cpu.json).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Output folder: checkpoints, metric logs, the trained avatar.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Continue the run in `--out` from its newest complete checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// Where tensors live (overrides the config's `backend`).
+    #[arg(long, value_enum)]
+    pub backend: Option<BackendKind>,
+    /// The head model `.npz` the data was made with (its `.obj` next to it); default:
+    /// `DATA/../head/head.npz` when present (a `texavatars synth` output), else the embedded
+    /// head.
+    #[arg(long)]
+    pub head: Option<PathBuf>,
+}
+
+/// Runs `train`.
+pub fn run(a: TrainArgs) -> anyhow::Result<()> {
+    let config = TrainConfig::load(&a.config)?;
+    let backend = a.backend.unwrap_or(config.backend);
+    // burn 0.22 restores a checkpoint's optimiser state on `Device::default()`
+    // (`ModuleOptimizer::load_record`), which is wgpu whenever that backend is compiled in: a
+    // resumed CPU run would start the Vulkan driver only to move the state off it on the first
+    // step. `BURN_DEVICE` points the default at the run's backend (unless the user set it).
+    if std::env::var_os("BURN_DEVICE").is_none() {
+        let name = match backend {
+            BackendKind::Cpu => "ndarray",
+            BackendKind::Flex => "flex",
+            BackendKind::Wgpu => "wgpu",
+        };
+        // SAFETY: called from `main` right after parsing the command line, before anything
+        // has started a thread that could read the environment concurrently.
+        unsafe { std::env::set_var("BURN_DEVICE", name) };
+    }
+    let mut options = TrainOptions::new(&a.data, &a.out);
+    options.resume = a.resume;
+    options.backend = Some(backend);
+    options.head = match &a.head {
+        Some(p) => Some(HeadAsset::load(p, None)?),
+        None => None,
+    };
+    let r = train::train(&config, &options)?;
+    println!(
+        "trained iterations {}..{} in {:.1} s ({} Gaussians); avatar written to {}",
+        r.start_iteration,
+        r.end_iteration,
+        r.seconds,
+        r.gaussians,
+        r.avatar_path.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,398 @@
+//! Training an avatar on a VHAP export (method §6) through burn's `Learner`.
+//!
+//! - The model burn trains is [`AvatarTraining`]: the [`Avatar`](crate::model::Avatar) and
+//!   its objective ([`loss`]); [`step`] implements `TrainStep` (render, objective,
+//!   backward) and `InferenceStep` (the same without VGG, on the held-out camera).
+//! - The paper counts iterations, burn counts epochs: one burn epoch is one checkpoint
+//!   interval ([`loader`]), so burn's checkpointer writes `OUT/checkpoint/{model,optim,
+//!   scheduler}-E.bpk` every `checkpoint_every` iterations and `--resume` continues from the
+//!   newest complete one, with the same frames the uninterrupted run would have used.
+//! - Two learning rates (6e-4 for the decoders, 4e-4 for Exp2Code and the view encoder):
+//!   burn 0.22 has parameter groups: a `ModuleLrScheduler` with a constant base rate and a
+//!   group (`ParamGroup::from_any_predicates(["exp2code", "view_encoder"])`, matched against
+//!   each parameter's module path) at the other rate. Adam keeps its moments per parameter,
+//!   so the groups share nothing but the hyper-parameters (beta1, beta2, eps 1e-15).
+//! - Metrics (the objective, each term, PSNR) are burn metrics ([`metrics`]): logged by
+//!   burn under `OUT/train/epoch-E/` and `OUT/valid/epoch-E/`, printed by [`progress`].
+//!
+//! Seeds: the device is seeded with the config's seed before the networks are built, and the
+//! frame order is a function of the seed and the iteration.
+
+pub mod config;
+pub mod constants;
+pub mod loader;
+pub mod loss;
+pub mod metrics;
+pub mod progress;
+pub mod step;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use burn::lr_scheduler::module_lr_scheduler::{ModuleLrScheduler, ModuleLrSchedulerConfig};
+use burn::module::{Module, ParamGroup};
+use burn::optim::{AdamConfig, ModuleOptimizer};
+use burn::train::checkpoint::{Checkpoint, KeepLastNCheckpoints};
+use burn::train::{Interrupter, Learner, SupervisedTraining};
+
+pub use config::{NetSpec, TrainConfig};
+pub use loader::{FrameLoader, Schedule, TrainBatch};
+pub use loss::{LossTerms, LossWeights, objective};
+pub use metrics::{Term, TermMetric};
+pub use progress::ProgressPrinter;
+pub use step::{AvatarTraining, Objective, StepOutput};
+
+use crate::data::{HeadDataset, Split};
+use crate::device::BackendKind;
+use crate::error::{Error, Result};
+use crate::head::HeadAsset;
+use crate::metrics::VggPerceptual;
+use crate::model::{Avatar, AvatarConfig};
+use constants::{ENCODER_MODULES, KEEP_CHECKPOINTS};
+
+/// File names inside the output folder.
+pub mod files {
+    /// The resolved training config of the run (read back by `--resume`).
+    pub const CONFIG: &str = "train_config.json";
+    /// The avatar's config (networks and ablations), for loading the trained avatar.
+    pub const AVATAR_CONFIG: &str = "avatar.json";
+    /// The trained avatar's parameters (burnpack), written when the run ends.
+    pub const AVATAR: &str = "avatar.bpk";
+    /// burn's checkpoint folder.
+    pub const CHECKPOINTS: &str = "checkpoint";
+}
+
+/// How to run [`train`].
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    /// The VHAP export's split folder (`transforms_{train,val}.json`), e.g. `OUT/union` of
+    /// `texavatars synth`.
+    pub data: PathBuf,
+    /// Output folder (checkpoints, logs, the trained avatar).
+    pub out: PathBuf,
+    /// Continue from the newest complete checkpoint in `out`.
+    pub resume: bool,
+    /// Overrides the config's backend.
+    pub backend: Option<BackendKind>,
+    /// The head the data was made with; `None`: `data/../head/head.npz` when it exists (a
+    /// `texavatars synth` output), else the embedded default head.
+    pub head: Option<HeadAsset>,
+    /// Install burn's application logger (`out/experiment.log`); it is process-global, so
+    /// library callers that train several times may turn it off.
+    pub app_log: bool,
+    /// Stop at the first checkpoint after at least this many iterations of this process (the
+    /// run's count continues with `--resume`; tests use it to interrupt a run).
+    pub stop_after: Option<usize>,
+}
+
+impl TrainOptions {
+    /// Defaults: no resume, the config's backend, the head found next to the data, burn's
+    /// application log on.
+    pub fn new(data: impl Into<PathBuf>, out: impl Into<PathBuf>) -> Self {
+        TrainOptions {
+            data: data.into(),
+            out: out.into(),
+            resume: false,
+            backend: None,
+            head: None,
+            app_log: true,
+            stop_after: None,
+        }
+    }
+}
+
+/// What a [`train`] call did.
+#[derive(Debug)]
+pub struct TrainReport {
+    /// The global iteration this process started at (0 unless resumed).
+    pub start_iteration: usize,
+    /// The global iteration reached (the run's total unless stopped early).
+    pub end_iteration: usize,
+    /// The trained avatar (on the inner, non-autodiff device).
+    pub avatar: Avatar,
+    /// Gaussians of the avatar.
+    pub gaussians: usize,
+    /// Wall time of this process's training.
+    pub seconds: f64,
+    /// Where the trained avatar was written (`out/avatar.bpk`).
+    pub avatar_path: PathBuf,
+}
+
+/// The newest epoch of `dir` (burn's checkpoint folder) whose model, optimiser and
+/// scheduler records all exist and parse; a partly written newest one (a run killed while
+/// saving) is skipped for the one before.
+pub fn latest_checkpoint(dir: &Path) -> Option<usize> {
+    let mut epochs: Vec<usize> = std::fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name().into_string().ok()?;
+            name.strip_prefix("model-")?
+                .strip_suffix(".bpk")?
+                .parse()
+                .ok()
+        })
+        .collect();
+    epochs.sort_unstable();
+    epochs.into_iter().rev().find(|&e| {
+        let p = |name: &str| dir.join(format!("{name}-{e}.bpk"));
+        burn::store::ModuleRecord::load(p("model")).is_ok()
+            && <burn::optim::OptimizerRecord as Checkpoint>::load(p("optim")).is_ok()
+            && <burn::lr_scheduler::LrSchedulerRecord as Checkpoint>::load(p("scheduler")).is_ok()
+    })
+}
+
+/// The head of `options`: given, or `data/../head/head.npz`, or the embedded default.
+fn find_head(options: &TrainOptions) -> Result<HeadAsset> {
+    if let Some(h) = &options.head {
+        return Ok(h.clone());
+    }
+    let next_to_data = options.data.join("..").join("head").join("head.npz");
+    if next_to_data.is_file() {
+        HeadAsset::load(&next_to_data, None)
+    } else {
+        HeadAsset::embedded()
+    }
+}
+
+fn write(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).map_err(|e| Error::io(path, e))
+}
+
+/// The learning rates: `lr_decoders` for every parameter, `lr_encoders` for those under
+/// [`ENCODER_MODULES`].
+pub fn lr_scheduler(config: &TrainConfig) -> ModuleLrScheduler {
+    ModuleLrSchedulerConfig::new(config.lr_decoders.into())
+        .with_group(
+            ParamGroup::from_any_predicates(ENCODER_MODULES.to_vec()),
+            config.lr_encoders,
+        )
+        .init()
+        .expect("constant learning rates are valid")
+}
+
+/// Adam with the config's betas and epsilon.
+pub fn optimizer(config: &TrainConfig) -> ModuleOptimizer {
+    AdamConfig::new()
+        .with_beta_1(config.adam_beta1 as f32)
+        .with_beta_2(config.adam_beta2 as f32)
+        .with_epsilon(config.adam_eps as f32)
+        .init()
+}
+
+/// Trains the avatar of `config` on `options.data` (see the module documentation), writes
+/// `out/avatar.bpk` and returns the trained avatar.
+///
+/// A resumed run restores the optimiser state on burn's `Device::default()` first (burn
+/// 0.22); set `BURN_DEVICE` to the run's backend to keep a CPU run off wgpu (the `train`
+/// command does).
+///
+/// Before anything runs, the data is checked against the avatar (vertex count, image size)
+/// and, when the VGG loss is on, the VGG16 weights must be installed (`texavatars weights
+/// install`). The net config's expression width is set to the head model's.
+pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport> {
+    let mut config = config.clone();
+    config.validate("train config")?;
+    let head = find_head(options)?;
+    if let NetSpec::Inline(net) = &mut config.net
+        && net.condition.expression != head.model.num_expr
+    {
+        eprintln!(
+            "train: the head model has {} expression coefficients; net.condition.expression {} -> {}",
+            head.model.num_expr, net.condition.expression, head.model.num_expr
+        );
+        net.condition.expression = head.model.num_expr;
+    }
+    let avatar_config: AvatarConfig = config.avatar()?;
+    let out = &options.out;
+    let ckpt_dir = out.join(files::CHECKPOINTS);
+
+    // Resume: the saved config must describe the same run.
+    let checkpoint = if options.resume {
+        let saved = TrainConfig::load(&out.join(files::CONFIG))?;
+        if let Err(field) = saved.resumable_as(&config) {
+            return Err(Error::invalid(
+                out.join(files::CONFIG).display().to_string(),
+                field,
+                "differs from the given config; a resumed run must train the same avatar with \
+                 the same schedule (only iterations, val_frames, log_every and backend may change)",
+            ));
+        }
+        let c = latest_checkpoint(&ckpt_dir);
+        if c.is_none() {
+            eprintln!(
+                "train: --resume: no complete checkpoint in {}; starting from iteration 0",
+                ckpt_dir.display()
+            );
+        }
+        c
+    } else {
+        if latest_checkpoint(&ckpt_dir).is_some() {
+            return Err(Error::invalid(
+                out.display().to_string(),
+                "checkpoint",
+                "already holds a training run; pass --resume to continue it or choose another --out",
+            ));
+        }
+        None
+    };
+
+    let backend = options.backend.unwrap_or(config.backend);
+    let device = backend.autodiff_device();
+    device.seed(config.seed);
+
+    let model = Arc::new(head.model.clone());
+    let train_set = Arc::new(HeadDataset::open(
+        &options.data,
+        Split::Train,
+        model.clone(),
+    )?);
+    if train_set.is_empty() {
+        return Err(Error::invalid(
+            train_set.transforms_path().display().to_string(),
+            "frames",
+            "the training split has no frames",
+        ));
+    }
+    let avatar = avatar_config.init(&head.mesh, &device)?;
+    // One frame through the checks the step cannot report (it may only panic).
+    let probe = train_set.load_item(0)?;
+    if probe.vertices.len() != avatar.num_vertices() {
+        return Err(Error::invalid(
+            train_set.transforms_path().display().to_string(),
+            "flame_param_path",
+            format!(
+                "posed meshes have {} vertices, the avatar's UV mesh {}",
+                probe.vertices.len(),
+                avatar.num_vertices()
+            ),
+        ));
+    }
+    let vgg = if config.ablations.vgg {
+        let v = VggPerceptual::load(&device)
+            .map_err(|e| {
+                Error::invalid(
+                    "train config",
+                    "ablations.vgg",
+                    format!(
+                        "the VGG loss needs the VGG16 weights: {e} (or set ablations.vgg to false)"
+                    ),
+                )
+            })?
+            .no_grad();
+        Some(Arc::new(v))
+    } else {
+        None
+    };
+    let training = AvatarTraining {
+        avatar,
+        objective: Objective {
+            weights: config.loss.clone(),
+            vgg,
+            vgg_from: config.vgg_from(),
+        },
+    };
+    let gaussians = training.avatar.num_gaussians();
+
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    write(&out.join(files::CONFIG), &config.to_json())?;
+    write(
+        &out.join(files::AVATAR_CONFIG),
+        &(serde_json::to_string_pretty(&avatar_config).expect("serialises") + "\n"),
+    )?;
+
+    let schedule = Schedule {
+        seed: config.seed,
+        per_epoch: config.checkpoint_every,
+        total: config.iterations,
+        batch_size: config.batch_size,
+    };
+    let start_epoch = checkpoint.unwrap_or(0);
+    let start_iteration = schedule.iterations_of(start_epoch).start;
+    let mut epochs = schedule.epochs();
+    if let Some(n) = options.stop_after {
+        // Whole checkpoint intervals only: burn stops between epochs.
+        epochs = epochs.min(start_epoch + n.div_ceil(schedule.per_epoch));
+    }
+    eprintln!(
+        "train: {} frames, {} Gaussians (R = S = {}), {} backend, iterations {start_iteration}..{} of {}, VGG from iteration {}",
+        train_set.len(),
+        gaussians,
+        avatar_config.net.uv_res,
+        format!("{backend:?}").to_lowercase(),
+        schedule.iterations_of(epochs.saturating_sub(1)).end,
+        schedule.total,
+        if config.ablations.vgg {
+            config.vgg_from().to_string()
+        } else {
+            "never".into()
+        }
+    );
+
+    // Validation: the held-out camera's frames when the export has them.
+    let val_file = options.data.join(Split::Val.file_name());
+    let valid_loader = if config.val_frames > 0 && val_file.is_file() {
+        let val_set = Arc::new(HeadDataset::open(&options.data, Split::Val, model)?);
+        let val_indices = FrameLoader::spread(val_set.len(), config.val_frames);
+        FrameLoader::fixed(val_set, val_indices, &device.clone().inner())
+    } else {
+        if config.val_frames > 0 {
+            eprintln!("train: no {}: no validation", val_file.display());
+        }
+        FrameLoader::fixed(train_set.clone(), Vec::new(), &device.clone().inner())
+    };
+    let train_loader = FrameLoader::training(train_set, schedule.clone(), start_epoch, &device);
+
+    let mut builder = SupervisedTraining::new(out, Arc::new(train_loader), Arc::new(valid_loader))
+        .metrics((
+            TermMetric::new(Term::Loss),
+            TermMetric::new(Term::L1),
+            TermMetric::new(Term::DSsim),
+            TermMetric::new(Term::Vgg),
+        ))
+        .metrics((
+            TermMetric::new(Term::Position),
+            TermMetric::new(Term::Scale),
+            TermMetric::new(Term::Psnr),
+        ))
+        .with_default_checkpointers()
+        .with_checkpointing_strategy(KeepLastNCheckpoints::new(KEEP_CHECKPOINTS))
+        .renderer(Box::new(ProgressPrinter::new(
+            schedule.clone(),
+            config.log_every,
+        )))
+        .with_interrupter(Interrupter::new())
+        .num_epochs(epochs);
+    if !options.app_log {
+        builder = builder.with_application_logger(None);
+    }
+    if let Some(c) = checkpoint {
+        builder = builder.checkpoint(c);
+    }
+    let learner = Learner::new(training, optimizer(&config), lr_scheduler(&config));
+    let t0 = Instant::now();
+    let result = builder.launch(learner);
+    let seconds = t0.elapsed().as_secs_f64();
+    if let Some(e) = result.error {
+        return Err(Error::invalid(
+            out.display().to_string(),
+            "training",
+            format!("stopped by an error: {e}"),
+        ));
+    }
+    let avatar = result.model.avatar;
+    let avatar_path = out.join(files::AVATAR);
+    avatar
+        .clone()
+        .save_file(&avatar_path)
+        .map_err(|e| Error::invalid(avatar_path.display().to_string(), "save", e.to_string()))?;
+    Ok(TrainReport {
+        start_iteration,
+        end_iteration: schedule.iterations_of(epochs.saturating_sub(1)).end,
+        avatar,
+        gaussians,
+        seconds,
+        avatar_path,
+    })
+}
