@@ -1,5 +1,6 @@
 //! Clap commands: thin wrappers that parse, call the library and report.
 
+pub mod eval;
 pub mod head;
 pub mod metrics;
 pub mod splat;
@@ -21,6 +22,9 @@ pub struct Cli {
 /// Top-level commands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Render a trained avatar on the evaluation splits (novel view, novel expression,
+    /// FREE) and score it: metrics.json, the paper's table, comparison images.
+    Eval(eval::EvalArgs),
     /// Head models: import the default head, print a summary.
     #[command(subcommand)]
     Head(head::HeadCommand),
@@ -45,6 +49,7 @@ pub enum Command {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Eval(a) => eval::run(a),
         Command::Head(c) => head::run(c),
         Command::Metrics(a) => metrics::run(a),
         Command::Splat(c) => splat::run(c),

@@ -4,6 +4,7 @@
 //! ([`plot`]).
 
 pub mod plot;
+pub mod run;
 pub mod score;
 
 pub use plot::{Series, line_plot};

@@ -1,0 +1,186 @@
+//! `texavatars eval`: render a trained avatar on the evaluation splits and score it.
+//!
+//! Splits (method.md §7): `val` = novel view (the held-out camera on training frames),
+//! `test` = novel expression (the held-out sequence), `free` = the FREE sequence. Writes
+//! `metrics.json` (means per split and every image's scores), `table.md` (the paper's
+//! layout) and `images/<split>/TTTTT_CC.png` panels (ground truth | render | error).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use burn::module::Module;
+use serde::Serialize;
+
+use crate::data::{HeadBatcher, HeadDataset, Split};
+use crate::device::BackendKind;
+use crate::error::{Error, Result};
+use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
+use crate::head::HeadAsset;
+use crate::io;
+use crate::model::avatar::{Avatar, AvatarConfig};
+use crate::train::files;
+
+/// How to run [`evaluate`].
+#[derive(Clone, Debug)]
+pub struct EvalOptions {
+    /// The export's split folder (e.g. `OUT/union` of `texavatars synth`).
+    pub data: PathBuf,
+    /// The training run's folder (`avatar.json`, `avatar.bpk`).
+    pub run: PathBuf,
+    /// Output folder.
+    pub out: PathBuf,
+    /// Splits to evaluate (those without a transforms file are skipped with a message).
+    pub splits: Vec<Split>,
+    /// Score LPIPS too (needs `texavatars weights install`).
+    pub lpips: bool,
+    /// Evaluate every `stride`-th frame of each split (1 = all).
+    pub stride: usize,
+    /// Panels written per split (spread over the split).
+    pub panels: usize,
+    /// Where to compute.
+    pub backend: BackendKind,
+}
+
+/// One scored image.
+#[derive(Clone, Debug, Serialize)]
+pub struct ImageScore {
+    pub split: String,
+    pub timestep: usize,
+    pub camera: usize,
+    #[serde(flatten)]
+    pub scores: Scores,
+}
+
+/// What [`evaluate`] produced.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalReport {
+    pub means: BTreeMap<String, Means>,
+    pub images: Vec<ImageScore>,
+    pub table: String,
+    pub seconds: f64,
+}
+
+/// The head a dataset was made with: `data/../head/head.npz` when present (a
+/// `texavatars synth` output), else the embedded default.
+pub fn head_for(data: &Path) -> Result<HeadAsset> {
+    let npz = data.join("../head/head.npz");
+    if npz.exists() {
+        HeadAsset::load(&npz, None)
+    } else {
+        HeadAsset::embedded()
+    }
+}
+
+/// Loads a trained avatar from a training run's folder.
+pub fn load_avatar(run: &Path, head: &HeadAsset, device: &burn::tensor::Device) -> Result<Avatar> {
+    let cfg_path = run.join(files::AVATAR_CONFIG);
+    let text = std::fs::read_to_string(&cfg_path).map_err(|e| Error::io(&cfg_path, e))?;
+    let cfg: AvatarConfig = serde_json::from_str(&text).map_err(|e| {
+        Error::invalid(
+            cfg_path.display().to_string(),
+            format!("line {}", e.line()),
+            e.to_string(),
+        )
+    })?;
+    let weights = run.join(files::AVATAR);
+    if !weights.exists() {
+        return Err(Error::invalid(
+            weights.display().to_string(),
+            "avatar",
+            "missing: the run has not finished (train it, or resume it with `texavatars train --resume`)",
+        ));
+    }
+    cfg.init(&head.mesh, device)?
+        .try_load_file(&weights)
+        .map_err(|e| Error::invalid(weights.display().to_string(), "record", e.to_string()))
+}
+
+/// Evenly spread `count` indices of `0..n`.
+fn spread(n: usize, count: usize) -> Vec<usize> {
+    if n == 0 || count == 0 {
+        return Vec::new();
+    }
+    let c = count.min(n);
+    (0..c).map(|i| i * n / c).collect()
+}
+
+/// Renders and scores the splits; `progress` receives one line per split.
+pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<EvalReport> {
+    let start = Instant::now();
+    let device = opts.backend.device();
+    let head = head_for(&opts.data)?;
+    let avatar = load_avatar(&opts.run, &head, &device)?;
+    let scorer = Scorer::new(&device, opts.lpips)?;
+    let model = Arc::new(head.model.clone());
+    let mut tally = Tally::default();
+    let mut images = Vec::new();
+    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    for &split in &opts.splits {
+        if !opts.data.join(split.file_name()).exists() {
+            progress(&format!(
+                "{split}: no {} in {}, skipped",
+                split.file_name(),
+                opts.data.display()
+            ));
+            continue;
+        }
+        let t0 = Instant::now();
+        let ds = HeadDataset::open(&opts.data, split, model.clone())?;
+        let indices: Vec<usize> = (0..ds.len()).step_by(opts.stride.max(1)).collect();
+        let panel_at = spread(indices.len(), opts.panels);
+        let dir = opts.out.join("images").join(split.name());
+        if !panel_at.is_empty() {
+            std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        }
+        for (k, &i) in indices.iter().enumerate() {
+            let item = ds.load_item(i)?;
+            let (h, w) = (item.height(), item.width());
+            let (t, c) = (item.timestep, item.camera_index);
+            let gt = item.image.clone();
+            let batch = HeadBatcher.try_batch(vec![item], &device)?;
+            let out = avatar.forward(&batch)?;
+            let render: Vec<f32> = out.renders.into_data().iter::<f32>().collect();
+            let scores = scorer.score(&gt, &render, h, w)?;
+            tally.add(split, &scores);
+            if panel_at.binary_search(&k).is_ok() {
+                let p = panel(&gt, &render, h, w);
+                io::image::write_png(&dir.join(format!("{t:05}_{c:02}.png")), w * 3, h, &p)?;
+            }
+            images.push(ImageScore {
+                split: split.name().to_string(),
+                timestep: t,
+                camera: c,
+                scores,
+            });
+        }
+        let m = tally.means();
+        if let Some(m) = m.get(split.name()) {
+            progress(&format!(
+                "{split}: {} images in {:.1} s: PSNR {:.2} dB, SSIM {:.4}{}",
+                m.images,
+                t0.elapsed().as_secs_f64(),
+                m.psnr,
+                m.ssim,
+                m.lpips_alex
+                    .map_or(String::new(), |l| format!(", LPIPS {l:.4}"))
+            ));
+        }
+    }
+    let means = tally.means();
+    let table = paper_table(&means);
+    let report = EvalReport {
+        means,
+        images,
+        table,
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    let json = serde_json::to_string_pretty(&report)
+        .map_err(|e| Error::invalid("evaluation", "json", e.to_string()))?;
+    let path = opts.out.join("metrics.json");
+    std::fs::write(&path, json).map_err(|e| Error::io(&path, e))?;
+    let path = opts.out.join("table.md");
+    std::fs::write(&path, &report.table).map_err(|e| Error::io(&path, e))?;
+    Ok(report)
+}
