@@ -12,6 +12,7 @@
 pub mod camera;
 pub mod cli;
 pub mod data;
+pub mod demo;
 pub mod device;
 pub mod error;
 pub mod eval;

