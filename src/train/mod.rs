@@ -188,9 +188,10 @@ pub fn optimizer(config: &TrainConfig) -> ModuleOptimizer {
 /// 0.22); set `BURN_DEVICE` to the run's backend to keep a CPU run off wgpu (the `train`
 /// command does).
 ///
-/// Before anything runs, the data is checked against the avatar (vertex count, image size)
-/// and, when the VGG loss is on, the VGG16 weights must be installed (`texavatars weights
-/// install`). The net config's expression width is set to the head model's.
+/// Before anything runs, the data is checked against the avatar (the posed meshes' vertex
+/// count) and, when the VGG loss is on, the VGG16 weights must be installed (`texavatars
+/// weights install`). The net config's expression width is set to the head model's (the
+/// loader pads or truncates every frame's coefficients to it).
 pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport> {
     let mut config = config.clone();
     config.validate("train config")?;
