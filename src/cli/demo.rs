@@ -25,6 +25,13 @@ pub struct DemoArgs {
 
 /// Runs `demo`.
 pub fn run(a: DemoArgs) -> anyhow::Result<()> {
+    // As in `train`: burn restores a checkpoint's optimiser state on `Device::default()`;
+    // keep a resumed CPU run on flex (the demo trains and evaluates on flex).
+    if std::env::var_os("BURN_DEVICE").is_none() {
+        // SAFETY: called from `main` right after parsing the command line, before anything
+        // has started a thread that could read the environment concurrently.
+        unsafe { std::env::set_var("BURN_DEVICE", "flex") };
+    }
     let opts = DemoOptions {
         out: a.out,
         train_config: a.config.unwrap_or_else(default_train_config),
