@@ -1,0 +1,95 @@
+//! One training iteration (render, objective, backward, Adam step) of the whole avatar on the
+//! CPU (flex), batch 1, without the VGG term (on only for the last part of a run; see the
+//! README for its cost).
+//!
+//! `cargo bench --bench train`; `TEXAVATARS_BENCH_CONFIG=cpu|paper` picks
+//! `configs/train_<name>.json` (default `cpu`). The images: the synthetic benchmark at 138 x 200
+//! for `cpu` and at NeRSemble's 550 x 802 for `paper` (two cameras, generated once into a
+//! temporary folder before timing).
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+
+use burn::tensor::Device;
+use burn::train::TrainStep;
+use criterion::{Criterion, criterion_group, criterion_main};
+use texavatars::data::{HeadBatcher, HeadDataset, Split};
+use texavatars::head::HeadAsset;
+use texavatars::synth::{self, SynthConfig};
+use texavatars::train::{
+    AvatarTraining, LossWeights, Objective, TrainBatch, TrainConfig, optimizer,
+};
+
+/// The allocator the `texavatars` binary uses (see `src/main.rs`).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+fn bench(c: &mut Criterion) {
+    let name = std::env::var("TEXAVATARS_BENCH_CONFIG").unwrap_or_else(|_| "cpu".into());
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("configs/train_{name}.json"));
+    let config = TrainConfig::load(&path).expect("config");
+    let head = HeadAsset::embedded().expect("head");
+    let (w, h) = if name == "paper" {
+        (550, 802)
+    } else {
+        (138, 200)
+    };
+    let data = std::env::temp_dir().join(format!(
+        "texavatars-bench-train-{name}-{}",
+        std::process::id()
+    ));
+    let synth_cfg = SynthConfig {
+        width: w,
+        height: h,
+        supersample: 1,
+        cameras: 2,
+        val_camera: 1,
+        frames_per_sequence: 2,
+        free_frames: 2,
+        texture_res: 256,
+        ..SynthConfig::default()
+    };
+    synth::generate(&synth_cfg, &head, &data, &mut |_| {}).expect("synth");
+    let device = Device::flex().autodiff();
+    let mut avatar_cfg = config.avatar().expect("avatar config");
+    avatar_cfg.net.condition.expression = head.model.num_expr;
+    let avatar = avatar_cfg.init(&head.mesh, &device).expect("avatar");
+    let ds = HeadDataset::open(
+        &data.join("union"),
+        Split::Train,
+        Arc::new(head.model.clone()),
+    )
+    .expect("dataset");
+    let item = ds.load_item(0).expect("item");
+    let batch = TrainBatch {
+        batch: HeadBatcher.try_batch(vec![item], &device).expect("batch"),
+        iteration: 0,
+    };
+    let mut model = Some(AvatarTraining {
+        avatar,
+        objective: Objective {
+            weights: LossWeights::default(),
+            vgg: None,
+            vgg_from: usize::MAX,
+        },
+    });
+    let mut optim = optimizer(&config);
+    let mut group = c.benchmark_group(format!("train_iteration_{name}"));
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(3));
+    group.measurement_time(Duration::from_secs(if name == "paper" { 60 } else { 10 }));
+    let gaussians = model.as_ref().map_or(0, |m| m.avatar.num_gaussians());
+    group.bench_function(format!("flex_{w}x{h}_{gaussians}_gaussians"), |b| {
+        b.iter(|| {
+            let m = model.take().expect("model");
+            let out = m.step(batch.clone());
+            model = Some(optim.step(config.lr_decoders, m, out.grads));
+        })
+    });
+    group.finish();
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
