@@ -97,6 +97,20 @@ fn smooth(points: &[(f64, f64)], k: usize) -> Vec<(f64, f64)> {
         .collect()
 }
 
+/// Plots `metric` of a run: training per iteration (light), its moving average over 50
+/// iterations (blue) and the validation passes (red).
+fn curve_plot(run: &Path, metric: &str, per_epoch: usize, png: &Path) -> Result<()> {
+    let train = metric_curve(run, "train", metric, per_epoch);
+    let valid = metric_curve(run, "valid", metric, per_epoch);
+    let series = [
+        ([0.75, 0.8, 0.95], train.clone()),
+        ([0.1, 0.3, 0.8], smooth(&train, 50)),
+        ([0.85, 0.2, 0.1], valid),
+    ]
+    .map(|(color, points)| Series { color, points });
+    line_plot(png, 640, 360, &series)
+}
+
 /// Runs the whole job; `progress` gets one line per stage and the stages' own lines.
 pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf> {
     let start = Instant::now();
@@ -168,48 +182,8 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
     let eval_s = t.elapsed().as_secs_f64();
 
     let per = config.checkpoint_every.max(1);
-    let loss = metric_curve(&run_dir, "train", "Loss", per);
-    let vloss = metric_curve(&run_dir, "valid", "Loss", per);
-    line_plot(
-        &report.join("loss.png"),
-        640,
-        360,
-        &[
-            Series {
-                color: [0.75, 0.8, 0.95],
-                points: loss.clone(),
-            },
-            Series {
-                color: [0.1, 0.3, 0.8],
-                points: smooth(&loss, 50),
-            },
-            Series {
-                color: [0.85, 0.2, 0.1],
-                points: vloss,
-            },
-        ],
-    )?;
-    let psnr = metric_curve(&run_dir, "train", "PSNR", per);
-    let vpsnr = metric_curve(&run_dir, "valid", "PSNR", per);
-    line_plot(
-        &report.join("psnr.png"),
-        640,
-        360,
-        &[
-            Series {
-                color: [0.75, 0.8, 0.95],
-                points: psnr.clone(),
-            },
-            Series {
-                color: [0.1, 0.3, 0.8],
-                points: smooth(&psnr, 50),
-            },
-            Series {
-                color: [0.85, 0.2, 0.1],
-                points: vpsnr,
-            },
-        ],
-    )?;
+    curve_plot(&run_dir, "Loss", per, &report.join("loss.png"))?;
+    curve_plot(&run_dir, "PSNR", per, &report.join("psnr.png"))?;
     let total = start.elapsed().as_secs_f64();
     let text = format!(
         "# texavatars demo report\n\n\
