@@ -596,3 +596,53 @@ fn decoder_outputs_feed_the_lifting_operator() {
         .expect("gradient through the lift");
     assert!(host(g).iter().any(|v| *v != 0.0));
 }
+
+/// The transposed convolution's wgpu path (burn's own kernels behind the extension) against
+/// the host path, values and gradients, at the decoders' kernel, stride and padding.
+#[test]
+fn conv_transpose_wgpu_matches_host() {
+    use texavatars::model::conv_transpose::{ConvTParams, conv_transpose2d};
+    let p = ConvTParams {
+        stride: [2, 2],
+        padding: [1, 1],
+    };
+    let run = |device: Device| {
+        let x: Vec<f32> = (0..2 * 3 * 5 * 4)
+            .map(|i| ((i * 37 % 17) as f32 - 8.0) / 8.0)
+            .collect();
+        let w: Vec<f32> = (0..3 * 2 * 4 * 4)
+            .map(|i| ((i * 53 % 13) as f32 - 6.0) / 6.0)
+            .collect();
+        let x = Tensor::<4>::from_data(TensorData::new(x, [2, 3, 5, 4]), &device).require_grad();
+        let w = Tensor::<4>::from_data(TensorData::new(w, [3, 2, 4, 4]), &device).require_grad();
+        let y = conv_transpose2d(x.clone(), w.clone(), p);
+        assert_eq!(y.dims(), [2, 2, 10, 8]);
+        let weights = Tensor::<4>::from_data(
+            TensorData::new(
+                (0..320).map(|i| (i % 7) as f32 - 3.0).collect(),
+                [2, 2, 10, 8],
+            ),
+            &device,
+        );
+        let grads = (y.clone() * weights).sum().backward();
+        (
+            host(y),
+            host(x.grad(&grads).expect("x grad")),
+            host(w.grad(&grads).expect("w grad")),
+        )
+    };
+    let cpu = run(Device::flex().autodiff());
+    let gpu = run(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff());
+    for (name, a, b) in [
+        ("y", cpu.0, gpu.0),
+        ("dx", cpu.1, gpu.1),
+        ("dw", cpu.2, gpu.2),
+    ] {
+        let d = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        assert!(d < 1e-4, "{name}: max difference {d}");
+    }
+}

@@ -20,11 +20,12 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::module::{conv_transpose2d, conv2d, linear};
-use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
+use burn::tensor::module::{conv2d, linear};
+use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Distribution, Tensor};
 
 use super::constants::LEAKY_RELU_SLOPE;
+use super::conv_transpose::{ConvTParams, conv_transpose2d};
 
 /// LeakyReLU with the networks' slope ([`LEAKY_RELU_SLOPE`] = 0.2).
 pub fn leaky_relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
@@ -318,12 +319,14 @@ impl WnConvTranspose2d {
     /// - `x`: [N, C_in, H, W]
     /// - returns [N, C_out, H_out, W_out] with `H_out = (H - 1) s - 2 p + k`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let y = conv_transpose2d(
-            x,
-            self.effective_weight(),
-            self.bias.as_ref().map(|b| b.val()),
-            ConvTransposeOptions::new(self.stride, self.padding, [0, 0], [1, 1], 1),
-        );
+        let p = ConvTParams {
+            stride: self.stride,
+            padding: self.padding,
+        };
+        let mut y = conv_transpose2d(x, self.effective_weight(), p);
+        if let Some(b) = &self.bias {
+            y = y + b.val().reshape([1, -1, 1, 1]);
+        }
         add_untied(y, &self.untied_bias, "WnConvTranspose2d")
     }
 }

@@ -9,6 +9,7 @@
 
 pub mod avatar;
 pub mod constants;
+pub mod conv_transpose;
 pub mod decoders;
 pub mod layers;
 pub mod net;
