@@ -14,6 +14,7 @@ pub mod cli;
 pub mod data;
 pub mod demo;
 pub mod device;
+pub mod drive;
 pub mod error;
 pub mod eval;
 pub mod head;

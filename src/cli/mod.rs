@@ -1,9 +1,12 @@
 //! Clap commands: thin wrappers that parse, call the library and report.
 
+pub mod bench;
 pub mod demo;
 pub mod eval;
+pub mod export;
 pub mod head;
 pub mod metrics;
+pub mod render;
 pub mod splat;
 pub mod synth;
 pub mod train;
@@ -23,17 +26,26 @@ pub struct Cli {
 /// Top-level commands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Benchmarks of a driven avatar (frames per second).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
     /// The main job: synthetic benchmark, CPU training, evaluation, report (out/demo).
     Demo(demo::DemoArgs),
     /// Render a trained avatar on the evaluation splits (novel view, novel expression,
     /// FREE) and score it: metrics.json, the paper's table, comparison images.
     Eval(eval::EvalArgs),
+    /// Export a driven avatar (per-frame 3DGS PLY files).
+    #[command(subcommand)]
+    Export(export::ExportCommand),
     /// Head models: import the default head, print a summary.
     #[command(subcommand)]
     Head(head::HeadCommand),
     /// PSNR, SSIM and LPIPS (alex, vgg, GaussianAvatars' unscaled variant) between two
     /// images, printed as one JSON object.
     Metrics(metrics::MetricsArgs),
+    /// Drive a trained avatar with a motion (dataset split, another subject's FLAME
+    /// parameters, or curves) and write frames, a contact sheet, a GIF and an MP4.
+    Render(render::RenderArgs),
     /// The Gaussian rasterizer on its own.
     #[command(subcommand)]
     Splat(splat::SplatCommand),
@@ -52,10 +64,13 @@ pub enum Command {
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Bench(c) => bench::run(c),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Export(c) => export::run(c),
         Command::Head(c) => head::run(c),
         Command::Metrics(a) => metrics::run(a),
+        Command::Render(a) => render::run(a),
         Command::Splat(c) => splat::run(c),
         Command::Synth(a) => synth::run(a),
         Command::Train(a) => train::run(a),

@@ -278,7 +278,7 @@ fn lock(m: &Cache) -> std::sync::MutexGuard<'_, HashMap<PathBuf, Arc<Conditionin
 /// Reads a timestep's FLAME parameters and eta, and poses the model.
 fn load_conditioning(model: &HeadModel, path: &Path) -> Result<Conditioning> {
     let what = path.display().to_string();
-    let mut pose = HeadPose::load_npz(path)?;
+    let pose = HeadPose::load_npz(path)?;
     if pose.shape.len() > model.num_shape {
         return Err(Error::invalid(
             &what,
@@ -303,14 +303,32 @@ fn load_conditioning(model: &HeadModel, path: &Path) -> Result<Conditioning> {
             ),
         ));
     }
+    let eta = vhap::load_eta(path)?;
+    pose_conditioning(model, pose, eta, &what)
+}
+
+/// The conditioning of FLAME parameters `pose` with `eta` (128 values): expression
+/// coefficients fitted to the model (zero-padded or truncated) and the posed vertices.
+/// Errors name `what` (the parameters' source).
+pub fn pose_conditioning(
+    model: &HeadModel,
+    mut pose: HeadPose,
+    eta: Vec<f32>,
+    what: &str,
+) -> Result<Conditioning> {
+    if eta.len() != ETA_DIM {
+        return Err(Error::invalid(
+            what,
+            "eta",
+            format!("{} values, expected {ETA_DIM}", eta.len()),
+        ));
+    }
     pose.expr.resize(model.num_expr, 0.0);
     let vertices = lbs(model, &pose).map_err(|e| match e {
-        // `lbs` names its input "head pose"; name the file instead.
-        Error::Invalid { field, why, .. } => Error::invalid(&what, field, why),
+        // `lbs` names its input "head pose"; name the source instead.
+        Error::Invalid { field, why, .. } => Error::invalid(what, field, why),
         other => other,
     })?;
-    let eta = vhap::load_eta(path)?;
-    debug_assert_eq!(eta.len(), ETA_DIM);
     Ok(Conditioning {
         pose: pose.pose15(),
         expr: pose.expr,

@@ -1,0 +1,100 @@
+//! `texavatars export ply`: a driven avatar's Gaussians as per-frame 3DGS PLY files.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Args, Subcommand};
+
+use crate::camera::CameraFile;
+use crate::cli::render::{DriveArgs, progress_bar};
+use crate::drive::{self, ExportStats, HostGaussians};
+use crate::io;
+use crate::model::constants::BACKGROUND;
+use crate::splat::ply;
+
+/// Export commands.
+#[derive(Debug, Subcommand)]
+pub enum ExportCommand {
+    /// Per-frame world-space 3DGS PLY files (INRIA layout, SH degree 0), with each frame's
+    /// camera as JSON (`splat render --camera`).
+    Ply(PlyArgs),
+}
+
+/// Arguments of `export ply`.
+#[derive(Debug, Args)]
+pub struct PlyArgs {
+    #[command(flatten)]
+    pub drive: DriveArgs,
+    /// Output folder: `FFFFF.ply` and `FFFFF_camera.json` per frame (F: the frame's position
+    /// in the motion).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write the avatar's own render of each frame (`FFFFF_render.png` and the float
+    /// image `FFFFF_render.npy`), e.g. to compare with `splat render`.
+    #[arg(long)]
+    pub render: bool,
+}
+
+/// Runs an export command.
+pub fn run(cmd: ExportCommand) -> anyhow::Result<()> {
+    match cmd {
+        ExportCommand::Ply(a) => ply_command(a),
+    }
+}
+
+fn ply_command(a: PlyArgs) -> anyhow::Result<()> {
+    let d = a.drive.load()?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let n = d.motion.frames.len();
+    let bar = progress_bar(n, "export");
+    let mut total = ExportStats::default();
+    for (k, (f, cam)) in d.motion.frames.iter().zip(&d.cameras).enumerate() {
+        let i = d.first + k;
+        let (rgb, g) = drive::render_frame(&d.avatar, &f.conditioning, cam, &d.device)?;
+        let host =
+            |t: burn::tensor::Tensor<2>| -> Vec<f32> { t.into_data().iter::<f32>().collect() };
+        let means = host(g.means);
+        let cov6 = host(g.cov6);
+        let colors = host(g.colors);
+        let opacities: Vec<f32> = g.opacities.into_data().iter::<f32>().collect();
+        let (p, stats) = drive::to_ply(&HostGaussians {
+            means: &means,
+            cov6: &cov6,
+            colors: &colors,
+            opacities: &opacities,
+        })?;
+        ply::write(&a.out.join(format!("{i:05}.ply")), &p)?;
+        let cam_path = a.out.join(format!("{i:05}_camera.json"));
+        let cam_file = CameraFile {
+            camera: *cam,
+            background: BACKGROUND,
+        };
+        std::fs::write(&cam_path, serde_json::to_string_pretty(&cam_file)? + "\n")
+            .with_context(|| format!("writing {}", cam_path.display()))?;
+        if a.render {
+            let (w, h) = (cam.width as usize, cam.height as usize);
+            io::image::write_png(&a.out.join(format!("{i:05}_render.png")), w, h, &rgb)?;
+            io::npy::write(&a.out.join(format!("{i:05}_render.npy")), &[h, w, 3], &rgb)?;
+        }
+        total.gaussians += stats.gaussians;
+        total.negative_colors += stats.negative_colors;
+        total.degenerate_covariances += stats.degenerate_covariances;
+        bar.set_position(k as u64 + 1);
+    }
+    bar.finish_and_clear();
+    println!(
+        "exported {n} frames ({} Gaussians each) to {}",
+        total.gaussians / n.max(1),
+        a.out.display()
+    );
+    if total.negative_colors > 0 || total.degenerate_covariances > 0 {
+        println!(
+            "clamped: {} Gaussian-frames with a colour channel below 0 (3DGS viewers clamp \
+             colours at 0), {} with a variance below {:e} (written at that floor)",
+            total.negative_colors,
+            total.degenerate_covariances,
+            drive::export::MIN_VARIANCE
+        );
+    }
+    Ok(())
+}

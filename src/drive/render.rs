@@ -1,0 +1,275 @@
+//! Rendering a driven avatar: one PNG per motion frame, a contact sheet, an animated GIF, and
+//! an MP4 when `ffmpeg` is on the PATH.
+//!
+//! Frames are written as they are rendered (`OUT/frames/00000.png`, ...), so an interrupted
+//! run keeps what it made; the sheet, GIF and MP4 are written at the end, each through a
+//! temporary file.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use image::codecs::gif::{GifEncoder, Repeat};
+use image::imageops::FilterType;
+use image::{Delay, Frame, RgbImage, RgbaImage};
+
+use crate::camera::Camera;
+use crate::data::Conditioning;
+use crate::drive::motion::Motion;
+use crate::error::{Error, Result};
+use crate::io;
+use crate::model::Avatar;
+use crate::splat::Gaussians;
+
+/// Frames on the contact sheet (evenly spread over the motion).
+const SHEET_FRAMES: usize = 16;
+/// Columns of the contact sheet.
+const SHEET_COLUMNS: usize = 4;
+/// Longest side of a contact-sheet tile and of a GIF frame, pixels.
+const THUMB_SIDE: u32 = 256;
+const GIF_SIDE: u32 = 400;
+
+/// Options of [`render_motion`].
+#[derive(Clone, Debug)]
+pub struct RenderOptions {
+    /// Output folder.
+    pub out: PathBuf,
+    /// Frames per second of the GIF and the MP4.
+    pub fps: u32,
+    /// Write the MP4 when `ffmpeg` is found.
+    pub mp4: bool,
+}
+
+/// What [`render_motion`] wrote.
+#[derive(Clone, Debug)]
+pub struct RenderReport {
+    pub frames: Vec<PathBuf>,
+    pub sheet: PathBuf,
+    pub gif: PathBuf,
+    /// The MP4, or why there is none.
+    pub mp4: std::result::Result<PathBuf, String>,
+}
+
+/// The networks' condition `[expr, pose, eta]` [1, C] and the posed vertices [1, V, 3] of a
+/// motion frame.
+pub fn frame_inputs(c: &Conditioning, device: &Device) -> (Tensor<2>, Tensor<3>) {
+    let cond: Vec<f32> = c
+        .expr
+        .iter()
+        .chain(&c.pose)
+        .chain(&c.eta)
+        .copied()
+        .collect();
+    let n = cond.len();
+    let v: Vec<f32> = c.vertices.iter().flatten().copied().collect();
+    (
+        Tensor::from_data(TensorData::new(cond, [1, n]), device),
+        Tensor::from_data(TensorData::new(v, [1, c.vertices.len(), 3]), device),
+    )
+}
+
+/// Checks that a motion fits an avatar (vertex count and condition width).
+pub fn check_motion(avatar: &Avatar, motion: &Motion) -> Result<()> {
+    let what = motion.source.display().to_string();
+    let want = avatar.net.cond_dim;
+    for f in &motion.frames {
+        let c = &f.conditioning;
+        if c.vertices.len() != avatar.num_vertices() {
+            return Err(Error::invalid(
+                &what,
+                "vertices",
+                format!(
+                    "the motion's head has {} vertices, the avatar's {}: drive it with the head \
+                     model it was trained on (--head)",
+                    c.vertices.len(),
+                    avatar.num_vertices()
+                ),
+            ));
+        }
+        let got = c.expr.len() + c.pose.len() + c.eta.len();
+        if got != want {
+            return Err(Error::invalid(
+                &what,
+                "condition",
+                format!("{got} values, the avatar's networks take {want}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The avatar's image [H, W, 3] (host, row-major) and Gaussians for one frame and camera.
+pub fn render_frame(
+    avatar: &Avatar,
+    c: &Conditioning,
+    camera: &Camera,
+    device: &Device,
+) -> Result<(Vec<f32>, Gaussians)> {
+    let (cond, verts) = frame_inputs(c, device);
+    let maps = avatar
+        .net
+        .forward_cameras(cond, std::slice::from_ref(camera))?;
+    let g = avatar.gaussians(&maps, 0, verts.squeeze_dim::<2>(0))?;
+    let params = crate::splat::SplatParams {
+        camera: *camera,
+        background: crate::model::constants::BACKGROUND,
+    };
+    let image = crate::splat::render(&g, &params)?.image;
+    Ok((image.into_data().iter::<f32>().collect(), g))
+}
+
+/// Renders every frame of `motion` from `cameras` (one per frame) into `opts.out`;
+/// `progress(done, total)` is called after each frame.
+pub fn render_motion(
+    avatar: &Avatar,
+    motion: &Motion,
+    cameras: &[Camera],
+    device: &Device,
+    opts: &RenderOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<RenderReport> {
+    check_motion(avatar, motion)?;
+    if cameras.len() != motion.frames.len() {
+        return Err(Error::invalid(
+            "render",
+            "cameras",
+            format!(
+                "{} cameras for {} frames",
+                cameras.len(),
+                motion.frames.len()
+            ),
+        ));
+    }
+    if opts.fps == 0 {
+        return Err(Error::invalid("render", "fps", "must be at least 1"));
+    }
+    let dir = opts.out.join("frames");
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    let n = motion.frames.len();
+    let sheet_at: Vec<usize> = (0..SHEET_FRAMES.min(n))
+        .map(|i| i * n / SHEET_FRAMES.min(n))
+        .collect();
+    let mut thumbs = Vec::new();
+    let mut gif_frames = Vec::new();
+    let mut frames = Vec::with_capacity(n);
+    for (i, (f, cam)) in motion.frames.iter().zip(cameras).enumerate() {
+        let (rgb, _) = render_frame(avatar, &f.conditioning, cam, device)?;
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let path = dir.join(format!("{i:05}.png"));
+        io::image::write_png(&path, w, h, &rgb)?;
+        let img = to_rgb8(&rgb, w, h)?;
+        if sheet_at.contains(&i) {
+            thumbs.push(fit(&img, THUMB_SIDE));
+        }
+        gif_frames.push(fit(&img, GIF_SIDE));
+        frames.push(path);
+        progress(i + 1, n);
+    }
+    let sheet = opts.out.join("contact_sheet.png");
+    write_sheet(&sheet, &thumbs)?;
+    let gif = opts.out.join("render.gif");
+    write_gif(&gif, &gif_frames, opts.fps)?;
+    let mp4 = if opts.mp4 {
+        write_mp4(&dir, &opts.out.join("render.mp4"), opts.fps)
+    } else {
+        Err("not asked for".into())
+    };
+    Ok(RenderReport {
+        frames,
+        sheet,
+        gif,
+        mp4,
+    })
+}
+
+fn to_rgb8(rgb: &[f32], w: usize, h: usize) -> Result<RgbImage> {
+    let bytes: Vec<u8> = rgb
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    RgbImage::from_raw(w as u32, h as u32, bytes)
+        .ok_or_else(|| Error::invalid("render", "image", "size does not fit"))
+}
+
+/// Downscales so that the longer side is at most `side` (never upscales).
+fn fit(img: &RgbImage, side: u32) -> RgbImage {
+    let (w, h) = img.dimensions();
+    let long = w.max(h);
+    if long <= side {
+        return img.clone();
+    }
+    let (nw, nh) = ((w * side / long).max(1), (h * side / long).max(1));
+    image::imageops::resize(img, nw, nh, FilterType::Triangle)
+}
+
+fn write_sheet(path: &Path, thumbs: &[RgbImage]) -> Result<()> {
+    let Some(first) = thumbs.first() else {
+        return Err(Error::invalid("render", "frames", "no frames"));
+    };
+    let (tw, th) = first.dimensions();
+    let cols = SHEET_COLUMNS.min(thumbs.len()) as u32;
+    let rows = thumbs.len().div_ceil(cols as usize) as u32;
+    let mut sheet = RgbImage::from_pixel(cols * tw, rows * th, image::Rgb([255, 255, 255]));
+    for (k, t) in thumbs.iter().enumerate() {
+        let (x, y) = ((k as u32 % cols) * tw, (k as u32 / cols) * th);
+        image::imageops::overlay(&mut sheet, t, x as i64, y as i64);
+    }
+    let tmp = path.with_extension("png.partial");
+    sheet
+        .save_with_format(&tmp, image::ImageFormat::Png)
+        .map_err(|e| Error::invalid(tmp.display().to_string(), "png", e.to_string()))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+fn write_gif(path: &Path, frames: &[RgbImage], fps: u32) -> Result<()> {
+    let tmp = path.with_extension("gif.partial");
+    let file = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
+    let gif_err =
+        |e: image::ImageError| Error::invalid(tmp.display().to_string(), "gif", e.to_string());
+    enc.set_repeat(Repeat::Infinite).map_err(gif_err)?;
+    let delay = Delay::from_numer_denom_ms(1000, fps);
+    for f in frames {
+        let rgba: RgbaImage = image::DynamicImage::ImageRgb8(f.clone()).to_rgba8();
+        enc.encode_frame(Frame::from_parts(rgba, 0, 0, delay))
+            .map_err(gif_err)?;
+    }
+    drop(enc);
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+/// Encodes `frames/%05d.png` with ffmpeg (H.264, yuv420p, sizes padded to even); `Err` says
+/// why there is no MP4 (no ffmpeg, or its error).
+fn write_mp4(frames: &Path, path: &Path, fps: u32) -> std::result::Result<PathBuf, String> {
+    let found = Command::new("ffmpeg")
+        .arg("-version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !found {
+        return Err("ffmpeg is not on the PATH".into());
+    }
+    let tmp = path.with_extension("partial.mp4");
+    let out = Command::new("ffmpeg")
+        .args(["-y", "-loglevel", "error", "-framerate"])
+        .arg(fps.to_string())
+        .arg("-i")
+        .arg(frames.join("%05d.png"))
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2:color=white",
+            "-pix_fmt",
+            "yuv420p",
+        ])
+        .arg(&tmp)
+        .output()
+        .map_err(|e| format!("ffmpeg: {e}"))?;
+    if !out.status.success() {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(format!(
+            "ffmpeg failed: {}",
+            String::from_utf8_lossy(&out.stderr).trim()
+        ));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(path.to_path_buf())
+}
