@@ -48,6 +48,27 @@ fn white() -> [f32; 3] {
 }
 
 impl Camera {
+    /// A pinhole camera of `width` x `height` pixels with vertical field of view
+    /// `fov_y_degrees`, square pixels, the principal point at the image centre, and the
+    /// world-to-camera transform `world_to_camera` (OpenCV axes).
+    pub fn from_fov(
+        width: u32,
+        height: u32,
+        fov_y_degrees: f32,
+        world_to_camera: [[f32; 4]; 4],
+    ) -> Self {
+        let f = 0.5 * height as f32 / (0.5 * fov_y_degrees.to_radians()).tan();
+        Camera {
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx: 0.5 * width as f32,
+            cy: 0.5 * height as f32,
+            world_to_camera,
+        }
+    }
+
     /// Rotation block (row-major) of the world-to-camera transform.
     pub fn rotation(&self) -> [[f32; 3]; 3] {
         let m = &self.world_to_camera;

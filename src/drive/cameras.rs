@@ -112,22 +112,18 @@ fn orbit(motion: &Motion, degrees: f32, view: &View) -> Result<Vec<Camera>> {
     }
     let target = centre(&motion.frames[0].conditioning.vertices);
     let n = motion.frames.len();
-    let f = 0.5 * view.height as f32 / (0.5 * view.fov_y_degrees.to_radians()).tan();
     let el = ELEVATION_DEGREES.to_radians();
     Ok((0..n)
         .map(|i| {
             let phase = std::f32::consts::TAU * i as f32 / n.max(1) as f32;
             let az = (degrees * phase.sin()).to_radians();
             let dir = Vec3::new(az.sin() * el.cos(), el.sin(), az.cos() * el.cos());
-            Camera {
-                width: view.width,
-                height: view.height,
-                fx: f,
-                fy: f,
-                cx: 0.5 * view.width as f32,
-                cy: 0.5 * view.height as f32,
-                world_to_camera: look_at(target + view.distance * dir, target),
-            }
+            Camera::from_fov(
+                view.width,
+                view.height,
+                view.fov_y_degrees,
+                look_at(target + view.distance * dir, target),
+            )
         })
         .collect())
 }

@@ -198,16 +198,9 @@ impl Motion {
             .iter()
             .enumerate()
             .map(|(t, f)| {
-                let mut pose = HeadPose::load_npz(f)?;
-                pose.shape.clone_from(&identity.shape);
-                pose.static_offset.clone_from(&identity.static_offset);
+                let pose = HeadPose::load_npz(f)?;
                 let eta = vhap::load_eta(f)?;
-                let c = pose_conditioning(model, pose, eta, &f.display().to_string())?;
-                Ok(MotionFrame {
-                    timestep: t,
-                    conditioning: Arc::new(c),
-                    cameras: Vec::new(),
-                })
+                driven(t, pose, eta, model, identity, &f.display().to_string())
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Motion {
@@ -231,16 +224,7 @@ impl Motion {
         let frames = poses
             .into_iter()
             .enumerate()
-            .map(|(t, mut pose)| {
-                pose.shape.clone_from(&identity.shape);
-                pose.static_offset.clone_from(&identity.static_offset);
-                let c = pose_conditioning(model, pose, vec![0.0; ETA_DIM], &what)?;
-                Ok(MotionFrame {
-                    timestep: t,
-                    conditioning: Arc::new(c),
-                    cameras: Vec::new(),
-                })
-            })
+            .map(|(t, pose)| driven(t, pose, vec![0.0; ETA_DIM], model, identity, &what))
             .collect::<Result<Vec<_>>>()?;
         Ok(Motion {
             kind: MotionKind::Curves,
@@ -266,6 +250,24 @@ impl Motion {
         self.frames = self.frames[range].to_vec();
         Ok(())
     }
+}
+
+/// Frame `t` of a driver's `pose` on the avatar's `identity`.
+fn driven(
+    t: usize,
+    mut pose: HeadPose,
+    eta: Vec<f32>,
+    model: &HeadModel,
+    identity: &Identity,
+    what: &str,
+) -> Result<MotionFrame> {
+    pose.shape.clone_from(&identity.shape);
+    pose.static_offset.clone_from(&identity.static_offset);
+    Ok(MotionFrame {
+        timestep: t,
+        conditioning: Arc::new(pose_conditioning(model, pose, eta, what)?),
+        cameras: Vec::new(),
+    })
 }
 
 fn check_identity(model: &HeadModel, identity: &Identity) -> Result<()> {

@@ -31,7 +31,6 @@ pub fn look_at(eye: Vec3, target: Vec3) -> [[f32; 4]; 4] {
 /// The rig's cameras looking at `target`.
 pub fn rig(config: &SynthConfig, target: Vec3) -> Vec<Camera> {
     let n = config.cameras;
-    let f = 0.5 * config.height as f32 / (0.5 * config.fov_y_degrees.to_radians()).tan();
     (0..n)
         .map(|i| {
             let (az, el) = if i == config.val_camera {
@@ -42,15 +41,12 @@ pub fn rig(config: &SynthConfig, target: Vec3) -> Vec<Camera> {
             };
             let (az, el) = (az.to_radians(), el.to_radians());
             let dir = Vec3::new(az.sin() * el.cos(), el.sin(), az.cos() * el.cos());
-            Camera {
-                width: config.width,
-                height: config.height,
-                fx: f,
-                fy: f,
-                cx: 0.5 * config.width as f32,
-                cy: 0.5 * config.height as f32,
-                world_to_camera: look_at(target + config.distance * dir, target),
-            }
+            Camera::from_fov(
+                config.width,
+                config.height,
+                config.fov_y_degrees,
+                look_at(target + config.distance * dir, target),
+            )
         })
         .collect()
 }
