@@ -129,9 +129,10 @@ fn fps_command(a: FpsArgs) -> anyhow::Result<()> {
         &mut |k, r| eprintln!("round {k}: {}", line(r)),
     )?;
     println!(
-        "mean of {} rounds: {}",
+        "mean of {} rounds: {} (the camera's Pluecker map, once: {:.1} ms)",
         report.rounds.len(),
-        line(&report.mean())
+        line(&report.mean()),
+        report.view_input_ms
     );
     if let Some(p) = &a.json {
         std::fs::write(p, serde_json::to_string_pretty(&report)? + "\n")?;

@@ -105,10 +105,23 @@ pub fn render_frame(
     camera: &Camera,
     device: &Device,
 ) -> Result<(Vec<f32>, Gaussians)> {
-    let (cond, verts) = frame_inputs(c, device);
-    let maps = avatar
+    let pluecker = avatar
         .net
-        .forward_cameras(cond, std::slice::from_ref(camera))?;
+        .view_input(std::slice::from_ref(camera), device)?;
+    render_frame_with(avatar, c, camera, pluecker, device)
+}
+
+/// [`render_frame`] with the camera's Pluecker map already computed
+/// ([`crate::model::TexAvatarNet::view_input`]), e.g. kept while the camera stays put.
+pub fn render_frame_with(
+    avatar: &Avatar,
+    c: &Conditioning,
+    camera: &Camera,
+    pluecker: Tensor<4>,
+    device: &Device,
+) -> Result<(Vec<f32>, Gaussians)> {
+    let (cond, verts) = frame_inputs(c, device);
+    let maps = avatar.net.forward(cond, pluecker)?;
     let g = avatar.gaussians(&maps, 0, verts.squeeze_dim::<2>(0))?;
     let params = crate::splat::SplatParams {
         camera: *camera,
@@ -152,8 +165,18 @@ pub fn render_motion(
     let mut thumbs = Vec::new();
     let mut gif_frames = Vec::new();
     let mut frames = Vec::with_capacity(n);
+    let mut view: Option<(Camera, Tensor<4>)> = None;
     for (i, (f, cam)) in motion.frames.iter().zip(cameras).enumerate() {
-        let (rgb, _) = render_frame(avatar, &f.conditioning, cam, device)?;
+        // The Pluecker map depends on the camera alone: kept while it stays put.
+        let pluecker = match &view {
+            Some((c, p)) if c == cam => p.clone(),
+            _ => {
+                let p = avatar.net.view_input(std::slice::from_ref(cam), device)?;
+                view = Some((*cam, p.clone()));
+                p
+            }
+        };
+        let (rgb, _) = render_frame_with(avatar, &f.conditioning, cam, pluecker, device)?;
         let (w, h) = (cam.width as usize, cam.height as usize);
         let path = dir.join(format!("{i:05}.png"));
         io::image::write_png(&path, w, h, &rgb)?;
