@@ -279,22 +279,35 @@ fn lock(m: &Cache) -> std::sync::MutexGuard<'_, HashMap<PathBuf, Arc<Conditionin
 fn load_conditioning(model: &HeadModel, path: &Path) -> Result<Conditioning> {
     let what = path.display().to_string();
     let pose = HeadPose::load_npz(path)?;
-    if pose.shape.len() > model.num_shape {
+    check_subject(model, &pose.shape, pose.static_offset.as_deref(), &what)?;
+    let eta = vhap::load_eta(path)?;
+    pose_conditioning(model, pose, eta, &what)
+}
+
+/// Fails, naming `what`, when a subject's shape coefficients or static offsets do not fit
+/// `model` (more coefficients than it has, or an offset count other than its vertices').
+pub fn check_subject(
+    model: &HeadModel,
+    shape: &[f32],
+    static_offset: Option<&[[f32; 3]]>,
+    what: &str,
+) -> Result<()> {
+    if shape.len() > model.num_shape {
         return Err(Error::invalid(
-            &what,
+            what,
             "shape",
             format!(
                 "{} coefficients, the model has {}",
-                pose.shape.len(),
+                shape.len(),
                 model.num_shape
             ),
         ));
     }
-    if let Some(o) = &pose.static_offset
+    if let Some(o) = static_offset
         && o.len() != model.num_vertices()
     {
         return Err(Error::invalid(
-            &what,
+            what,
             "static_offset",
             format!(
                 "{} offsets, the model has {} vertices",
@@ -303,8 +316,7 @@ fn load_conditioning(model: &HeadModel, path: &Path) -> Result<Conditioning> {
             ),
         ));
     }
-    let eta = vhap::load_eta(path)?;
-    pose_conditioning(model, pose, eta, &what)
+    Ok(())
 }
 
 /// The conditioning of FLAME parameters `pose` with `eta` (128 values): expression

@@ -22,7 +22,7 @@ use std::sync::Arc;
 use serde::Deserialize;
 
 use crate::camera::Camera;
-use crate::data::dataset::pose_conditioning;
+use crate::data::dataset::{check_subject, pose_conditioning};
 use crate::data::vhap::{self, ETA_DIM};
 use crate::data::{Conditioning, HeadDataset};
 use crate::error::{Error, Result};
@@ -271,31 +271,12 @@ fn driven(
 }
 
 fn check_identity(model: &HeadModel, identity: &Identity) -> Result<()> {
-    if identity.shape.len() > model.num_shape {
-        return Err(Error::invalid(
-            "identity",
-            "shape",
-            format!(
-                "{} coefficients, the model has {}",
-                identity.shape.len(),
-                model.num_shape
-            ),
-        ));
-    }
-    if let Some(o) = &identity.static_offset
-        && o.len() != model.num_vertices()
-    {
-        return Err(Error::invalid(
-            "identity",
-            "static_offset",
-            format!(
-                "{} offsets, the model has {} vertices",
-                o.len(),
-                model.num_vertices()
-            ),
-        ));
-    }
-    Ok(())
+    check_subject(
+        model,
+        &identity.shape,
+        identity.static_offset.as_deref(),
+        "identity",
+    )
 }
 
 /// A keyframed motion (JSON):
