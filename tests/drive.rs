@@ -1,6 +1,8 @@
 //! `render`, `export ply` and `bench fps` on a tiny trained avatar (a tiny synthetic set, a
 //! few training iterations), with each kind of motion, and their errors on bad motions.
 
+mod tiny;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
@@ -12,8 +14,6 @@ use texavatars::head::HeadAsset;
 use texavatars::io;
 use texavatars::model::constants::BACKGROUND;
 use texavatars::splat::{self, SplatParams};
-use texavatars::synth::{self, SynthConfig};
-use texavatars::train::{TrainConfig, TrainOptions, train};
 
 struct Fixture {
     data: PathBuf,
@@ -31,28 +31,9 @@ fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
         let data = tmp("data");
-        let config = SynthConfig {
-            width: 24,
-            height: 32,
-            supersample: 1,
-            frames_per_sequence: 2,
-            free_frames: 2,
-            texture_res: 64,
-            ..SynthConfig::default()
-        };
-        let head = HeadAsset::embedded().expect("head");
-        synth::generate(&config, &head, &data, &mut |_| {}).expect("synth");
+        tiny::synth_data(&data);
         let run = tmp("run");
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
-        let mut c = TrainConfig::load(&path).expect("tiny config");
-        c.iterations = 4;
-        c.checkpoint_every = 4;
-        c.log_every = 0;
-        let mut t = TrainOptions::new(data.join("union"), &run);
-        t.backend = Some(BackendKind::Flex);
-        t.head = Some(head);
-        t.app_log = false;
-        train(&c, &t).expect("train");
+        tiny::train_tiny(&data, &run, 4, 4);
         Fixture { data, run }
     })
 }

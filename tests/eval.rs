@@ -1,14 +1,13 @@
 //! `eval` end to end: a tiny synthetic set, a few training iterations, then the protocol's
 //! splits rendered and scored, with the files the report promises.
 
-use std::path::{Path, PathBuf};
+mod tiny;
+
+use std::path::PathBuf;
 
 use texavatars::data::Split;
 use texavatars::device::BackendKind;
 use texavatars::eval::run::{EvalOptions, evaluate};
-use texavatars::head::HeadAsset;
-use texavatars::synth::{self, SynthConfig};
-use texavatars::train::{TrainConfig, TrainOptions, train};
 
 fn dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("texavatars-eval-{name}-{}", std::process::id()));
@@ -19,17 +18,7 @@ fn dir(name: &str) -> PathBuf {
 #[test]
 fn trained_avatar_is_scored_on_every_split() {
     let data = dir("data");
-    let config = SynthConfig {
-        width: 24,
-        height: 32,
-        supersample: 1,
-        frames_per_sequence: 2,
-        free_frames: 2,
-        texture_res: 64,
-        ..SynthConfig::default()
-    };
-    let head = HeadAsset::embedded().expect("head");
-    synth::generate(&config, &head, &data, &mut |_| {}).expect("synth");
+    tiny::synth_data(&data);
     let union = data.join("union");
 
     let run = dir("run");
@@ -47,16 +36,7 @@ fn trained_avatar_is_scored_on_every_split() {
     let e = evaluate(&opts, &mut |_| {}).unwrap_err().to_string();
     assert!(e.contains("avatar.json"), "{e}");
 
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
-    let mut c = TrainConfig::load(&path).expect("tiny config");
-    c.iterations = 4;
-    c.checkpoint_every = 2;
-    c.log_every = 0;
-    let mut t = TrainOptions::new(&union, &run);
-    t.backend = Some(BackendKind::Flex);
-    t.head = Some(head.clone());
-    t.app_log = false;
-    train(&c, &t).expect("train");
+    tiny::train_tiny(&data, &run, 4, 2);
 
     let mut lines = Vec::new();
     let report = evaluate(&opts, &mut |l| lines.push(l.to_string())).expect("eval");

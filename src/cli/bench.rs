@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 
+use crate::cli::render::parse_size;
 use crate::device::BackendKind;
 use crate::drive::fps::{self, Round};
 use crate::drive::{self, CameraPath, Identity, Motion, View};
@@ -88,11 +89,7 @@ fn fps_command(a: FpsArgs) -> anyhow::Result<()> {
             "neutral pose",
         )?),
     };
-    let (w, h) = a
-        .size
-        .split_once(['x', 'X'])
-        .and_then(|(w, h)| Some((w.trim().parse().ok()?, h.trim().parse().ok()?)))
-        .ok_or_else(|| anyhow::anyhow!("--size {:?}: expected WIDTHxHEIGHT", a.size))?;
+    let (w, h) = parse_size(&a.size)?;
     let one = Motion {
         kind: drive::MotionKind::Curves,
         source: "bench".into(),

@@ -95,7 +95,8 @@ pub fn parse_frames(s: &str) -> anyhow::Result<Range<usize>> {
     }
 }
 
-fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
+/// Parses `WIDTHxHEIGHT`.
+pub fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
     let bad = || format!("--size {s:?}: expected WIDTHxHEIGHT, e.g. 550x802");
     let (w, h) = s.split_once(['x', 'X']).with_context(bad)?;
     Ok((
