@@ -244,6 +244,54 @@ fn forward_shapes_at_tiny_and_cpu_sizes() {
     }
 }
 
+/// Folding the weight norms for inference reaches every layer and keeps the outputs.
+#[test]
+fn folded_net_computes_the_same_maps() {
+    let device = seeded(Device::ndarray(), 4);
+    let cfg = config("tiny");
+    let net = cfg.init(&device).unwrap();
+    // At initialisation v is the effective weight; scaling v (which the norm undoes) makes a
+    // fold that skipped the norm without storing the weight show in the outputs.
+    let net = TexAvatarNet {
+        exp2code: texavatars::model::Exp2Code {
+            linear: WnLinear {
+                v: Param::from_tensor(net.exp2code.linear.v.val() * 3.0),
+                ..net.exp2code.linear
+            },
+            ..net.exp2code
+        },
+        ..net
+    };
+    let run = |net: &TexAvatarNet| {
+        let maps = net
+            .forward_cameras(condition(1, cfg.condition.dim(), 0.5, &device), &[camera()])
+            .unwrap();
+        (host(maps.geometry), host(maps.rgb))
+    };
+    let before = run(&net);
+    let net = net.fold();
+    let a = &net.appearance;
+    assert!(net.exp2code.linear.folded);
+    assert!(net.view_encoder.convs.iter().all(|c| c.folded));
+    assert!(a.mid.iter().all(|c| c.folded));
+    let ups = net
+        .geometry
+        .layers
+        .iter()
+        .chain(&a.before_view)
+        .chain(&a.after_view);
+    assert!(ups.clone().count() > 0 && ups.into_iter().all(|c| c.folded));
+    let after = run(&net);
+    for (b, f) in [(&before.0, &after.0), (&before.1, &after.1)] {
+        let diff = b
+            .iter()
+            .zip(f)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        assert!(diff < 1e-5, "{diff}");
+    }
+}
+
 #[test]
 fn forward_rejects_mismatched_inputs() {
     let device = seeded(Device::ndarray(), 3);

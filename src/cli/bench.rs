@@ -73,7 +73,9 @@ fn fps_command(a: FpsArgs) -> anyhow::Result<()> {
             let mut net = NetConfig::load(&a.net)?;
             net.condition.expression = head.model.num_expr;
             device.seed(0);
-            AvatarConfig::new(net).init(&head.mesh, &device)?
+            AvatarConfig::new(net)
+                .init(&head.mesh, &device)?
+                .for_inference()
         }
     };
     let identity = Identity::mean(&head.model);

@@ -73,7 +73,8 @@ pub fn head_for(data: &Path) -> Result<HeadAsset> {
     }
 }
 
-/// Loads a trained avatar from a training run's folder.
+/// Loads a trained avatar from a training run's folder, for inference (weight norms folded:
+/// [`Avatar::for_inference`]).
 pub fn load_avatar(run: &Path, head: &HeadAsset, device: &burn::tensor::Device) -> Result<Avatar> {
     let cfg_path = run.join(files::AVATAR_CONFIG);
     let text = std::fs::read_to_string(&cfg_path).map_err(|e| Error::io(&cfg_path, e))?;
@@ -94,6 +95,7 @@ pub fn load_avatar(run: &Path, head: &HeadAsset, device: &burn::tensor::Device) 
     }
     cfg.init(&head.mesh, device)?
         .try_load_file(&weights)
+        .map(Avatar::for_inference)
         .map_err(|e| Error::invalid(weights.display().to_string(), "record", e.to_string()))
 }
 

@@ -208,6 +208,15 @@ pub struct AvatarOutput {
 }
 
 impl Avatar {
+    /// For rendering only: the networks with their weight norms folded
+    /// ([`TexAvatarNet::fold`]).
+    pub fn for_inference(self) -> Self {
+        Self {
+            net: self.net.fold(),
+            ..self
+        }
+    }
+
     /// Number of Gaussians (kept samples of the texel set-up).
     pub fn num_gaussians(&self) -> usize {
         self.lift.topology.len()

@@ -58,6 +58,10 @@ fn chain(layers: &[WnConvTranspose2d], mut x: Tensor<4>, last_linear: bool) -> T
     x
 }
 
+fn fold_all(layers: Vec<WnConvTranspose2d>) -> Vec<WnConvTranspose2d> {
+    layers.into_iter().map(WnConvTranspose2d::fold).collect()
+}
+
 // ---------------------------------------------------------------------------------------------
 
 /// Configuration of [`Exp2Code`].
@@ -98,6 +102,14 @@ impl Exp2Code {
     pub fn forward(&self, condition: Tensor<2>) -> Tensor<4> {
         let n = condition.dims()[0];
         leaky_relu(self.linear.forward(condition)).reshape([n, self.channels, BASE_RES, BASE_RES])
+    }
+
+    /// Folds the weight norm for inference ([`WnLinear::fold`]).
+    pub fn fold(self) -> Self {
+        Self {
+            linear: self.linear.fold(),
+            ..self
+        }
     }
 }
 
@@ -150,6 +162,13 @@ impl ViewEncoder {
             .iter()
             .fold(pluecker, |x, conv| leaky_relu(conv.forward(x)))
     }
+
+    /// Folds the weight norms for inference ([`WnConv2d::fold`]).
+    pub fn fold(self) -> Self {
+        Self {
+            convs: self.convs.into_iter().map(WnConv2d::fold).collect(),
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -201,6 +220,13 @@ impl GeometryDecoder {
     /// - returns [N, 11, R, R] with `R = 8 * 2^k`
     pub fn forward(&self, code: Tensor<4>) -> Tensor<4> {
         chain(&self.layers, code, true)
+    }
+
+    /// Folds the weight norms for inference ([`WnConvTranspose2d::fold`]).
+    pub fn fold(self) -> Self {
+        Self {
+            layers: fold_all(self.layers),
+        }
     }
 }
 
@@ -290,5 +316,14 @@ impl AppearanceDecoder {
             .iter()
             .fold(x, |x, conv| leaky_relu(conv.forward(x)));
         chain(&self.after_view, x, true)
+    }
+
+    /// Folds the weight norms for inference (see [`WnConvTranspose2d::fold`]).
+    pub fn fold(self) -> Self {
+        Self {
+            before_view: fold_all(self.before_view),
+            mid: self.mid.into_iter().map(WnConv2d::fold).collect(),
+            after_view: fold_all(self.after_view),
+        }
     }
 }

@@ -62,6 +62,17 @@ pub fn weight_norm<const D: usize>(v: Tensor<D>, g: Tensor<1>, out_dim: usize) -
     v * (g / norm).reshape(shape)
 }
 
+/// `(v, g)` that hold the effective weight `w` itself: `v = w` and `g_o = ||w||` for every
+/// output channel, so that `g * v / ||v||` is `w` again (a folded layer saved and loaded as
+/// an ordinary one computes the same function).
+fn fold_v_g<const D: usize>(w: Tensor<D>, out_dim: usize) -> (Param<Tensor<D>>, Param<Tensor<1>>) {
+    let w = w.detach();
+    let c_out = w.dims()[out_dim];
+    let norm = w.clone().powi_scalar(2).sum().sqrt();
+    let g = Tensor::<1>::ones([c_out], &w.device()) * norm;
+    (Param::from_tensor(w), Param::from_tensor(g))
+}
+
 /// `v ~ U(-b, b)`, `b = 1 / sqrt(fan_in)`, and `g` = `||v||` per output channel.
 fn init_v_g<const D: usize>(
     shape: [usize; D],
@@ -138,6 +149,8 @@ pub struct WnLinear {
     pub v: Param<Tensor<2>>,
     /// Magnitude per output feature, `[d_output]`.
     pub g: Param<Tensor<1>>,
+    /// Whether `v` already holds the effective weight ([`Self::fold`]); not saved.
+    pub folded: bool,
     /// Bias, `[d_output]`.
     pub bias: Option<Param<Tensor<1>>>,
 }
@@ -149,14 +162,34 @@ impl WnLinearConfig {
         let bias = self
             .bias
             .then(|| uniform_bias(self.d_output, self.d_input, device));
-        WnLinear { v, g, bias }
+        WnLinear {
+            v,
+            g,
+            folded: false,
+            bias,
+        }
     }
 }
 
 impl WnLinear {
     /// The effective weight `g * v / ||v||`, [d_output, d_input].
     pub fn effective_weight(&self) -> Tensor<2> {
+        if self.folded {
+            return self.v.val();
+        }
         weight_norm(self.v.val(), self.g.val(), 0)
+    }
+
+    /// For inference: stores the effective weight in `v` so that forward passes skip the
+    /// norm (the weight is then a constant: no gradient reaches `v` or `g`).
+    pub fn fold(self) -> Self {
+        let (v, g) = fold_v_g(self.effective_weight(), 0);
+        Self {
+            v,
+            g,
+            folded: true,
+            ..self
+        }
     }
 
     /// `y = x w^T + b`.
@@ -200,6 +233,8 @@ pub struct WnConv2d {
     pub v: Param<Tensor<4>>,
     /// Magnitude per output channel, `[C_out]`.
     pub g: Param<Tensor<1>>,
+    /// Whether `v` already holds the effective weight ([`Self::fold`]); not saved.
+    pub folded: bool,
     /// Per-channel bias, `[C_out]`.
     pub bias: Option<Param<Tensor<1>>>,
     /// Untied bias, [C_out, H_out, W_out].
@@ -221,6 +256,7 @@ impl WnConv2dConfig {
         WnConv2d {
             v,
             g,
+            folded: false,
             bias,
             untied_bias,
             stride: self.stride,
@@ -232,7 +268,22 @@ impl WnConv2dConfig {
 impl WnConv2d {
     /// The effective weight `g * v / ||v||`, [C_out, C_in, k_h, k_w].
     pub fn effective_weight(&self) -> Tensor<4> {
+        if self.folded {
+            return self.v.val();
+        }
         weight_norm(self.v.val(), self.g.val(), 0)
+    }
+
+    /// For inference: stores the effective weight in `v` so that forward passes skip the
+    /// norm (the weight is then a constant: no gradient reaches `v` or `g`).
+    pub fn fold(self) -> Self {
+        let (v, g) = fold_v_g(self.effective_weight(), 0);
+        Self {
+            v,
+            g,
+            folded: true,
+            ..self
+        }
     }
 
     /// Convolution with the effective weight, plus the bias.
@@ -278,6 +329,8 @@ pub struct WnConvTranspose2d {
     pub v: Param<Tensor<4>>,
     /// Magnitude per output channel, `[C_out]` (broadcast along dimension 1 of `v`).
     pub g: Param<Tensor<1>>,
+    /// Whether `v` already holds the effective weight ([`Self::fold`]); not saved.
+    pub folded: bool,
     /// Per-channel bias, `[C_out]`.
     pub bias: Option<Param<Tensor<1>>>,
     /// Untied bias, [C_out, H_out, W_out].
@@ -299,6 +352,7 @@ impl WnConvTranspose2dConfig {
         WnConvTranspose2d {
             v,
             g,
+            folded: false,
             bias,
             untied_bias,
             stride: self.stride,
@@ -310,7 +364,22 @@ impl WnConvTranspose2dConfig {
 impl WnConvTranspose2d {
     /// The effective weight `g * v / ||v||`, [C_in, C_out, k_h, k_w].
     pub fn effective_weight(&self) -> Tensor<4> {
+        if self.folded {
+            return self.v.val();
+        }
         weight_norm(self.v.val(), self.g.val(), 1)
+    }
+
+    /// For inference: stores the effective weight in `v` so that forward passes skip the
+    /// norm (the weight is then a constant: no gradient reaches `v` or `g`).
+    pub fn fold(self) -> Self {
+        let (v, g) = fold_v_g(self.effective_weight(), 1);
+        Self {
+            v,
+            g,
+            folded: true,
+            ..self
+        }
     }
 
     /// Transposed convolution with the effective weight, plus the bias.
@@ -455,6 +524,61 @@ mod tests {
             .sum::<f32>()
             .sqrt();
         assert!((w_norm - 1.7).abs() < 1e-5, "{w_norm}");
+    }
+
+    /// A folded layer computes the same outputs, and so does its record read as an
+    /// ordinary layer (`folded` is not saved).
+    #[test]
+    fn folding_keeps_the_function() {
+        let d = device();
+        let x = input([2, 3, 5, 5], &d);
+        let mut conv = WnConv2dConfig::new([3, 4], [3, 3])
+            .with_padding([1, 1])
+            .init(&d);
+        conv.g = random_g(4, &d);
+        let mut up = WnConvTranspose2dConfig::new([3, 2], [4, 4])
+            .with_stride([2, 2])
+            .with_padding([1, 1])
+            .init(&d);
+        up.g = random_g(2, &d);
+        let mut lin = WnLinearConfig::new(6, 5).init(&d);
+        lin.g = random_g(5, &d);
+        let xl = Tensor::<2>::random([3, 6], Distribution::Uniform(-1.0, 1.0), &d);
+        let before = [
+            host(conv.forward(x.clone())),
+            host(up.forward(x.clone())),
+            host(lin.forward(xl.clone())),
+        ];
+        let (conv, up, lin) = (conv.fold(), up.fold(), lin.fold());
+        assert!(conv.folded && up.folded && lin.folded);
+        let folded = [
+            host(conv.forward(x.clone())),
+            host(up.forward(x.clone())),
+            host(lin.forward(xl.clone())),
+        ];
+        let (conv, up, lin) = (
+            WnConv2d {
+                folded: false,
+                ..conv
+            },
+            WnConvTranspose2d {
+                folded: false,
+                ..up
+            },
+            WnLinear {
+                folded: false,
+                ..lin
+            },
+        );
+        let reloaded = [
+            host(conv.forward(x.clone())),
+            host(up.forward(x)),
+            host(lin.forward(xl)),
+        ];
+        for ((b, f), r) in before.iter().zip(&folded).zip(&reloaded) {
+            assert!(max_diff(b, f) < 1e-6, "{}", max_diff(b, f));
+            assert!(max_diff(b, r) < 1e-5, "{}", max_diff(b, r));
+        }
     }
 
     #[test]
