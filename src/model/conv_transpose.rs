@@ -558,13 +558,15 @@ mod tests {
     type Case = ([usize; 2], [usize; 2], [usize; 2], [usize; 2], usize);
 
     /// Index-map cases.
-    const CASES: [Case; 6] = [
+    const CASES: [Case; 7] = [
         ([4, 4], [2, 2], [1, 1], [5, 6], 2), // the decoders' layer
         ([3, 3], [1, 1], [1, 1], [4, 3], 1),
         ([3, 2], [2, 3], [0, 1], [3, 4], 1),
         ([1, 1], [1, 1], [0, 0], [2, 2], 3),
         ([5, 5], [3, 2], [2, 1], [2, 3], 1),
         ([4, 4], [2, 2], [1, 1], [1, 1], 1),
+        // Kernels smaller than the stride: output pixels that no tap reaches stay zero.
+        ([2, 1], [3, 2], [0, 0], [3, 2], 2),
     ];
 
     /// Values and gradients against burn's `conv_transpose2d` (the reference twin).
