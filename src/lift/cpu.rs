@@ -6,6 +6,8 @@
 //! frames' and anchors' gradients gathered per face and vertex. Local mode samples the 14
 //! local channels first and lifts per sample.
 //!
+//! Texels that no sample reads ([`Topology::tapped`]) are skipped both ways.
+//!
 //! Scatters onto texels and vertices run serially in a fixed order, so results are
 //! deterministic.
 
@@ -104,7 +106,8 @@ fn pack(mean: Vec3, cov: [f32; 6], l: &[f32; LOCAL_CHANNELS], opacity: f32) -> [
     o
 }
 
-/// Per-texel payload of global mode (opacity channel still a logit).
+/// Per-texel payload of global mode (opacity channel still a logit); zero at texels no
+/// sample reads ([`Topology::tapped`]).
 fn payload(
     topo: &Topology,
     local: &[f32],
@@ -112,10 +115,14 @@ fn payload(
     verts: &[Vec3],
 ) -> Vec<[f32; OUT_CHANNELS]> {
     let rr = topo.res() * topo.res();
+    let tapped = topo.tapped();
     (0..rr)
         .into_par_iter()
         .with_min_len(256)
         .map(|t| {
+            if !tapped[t] {
+                return [0.0; OUT_CHANNELS];
+            }
             let l = texel_local(local, rr, t);
             let (j, p) = texel_frame(topo, frames, verts, t);
             let (mean, cov) = lift(&j, p, &geom(&l));
@@ -249,10 +256,15 @@ pub fn backward(
                     }
                 }
             }
+            let tapped = topo.tapped();
             let per_texel: Vec<(LiftGrads, [f32; LOCAL_CHANNELS])> = (0..rr)
                 .into_par_iter()
                 .with_min_len(256)
                 .map(|t| {
+                    // No sample reads the texel: its payload gradient is zero.
+                    if !tapped[t] {
+                        return Default::default();
+                    }
                     let d = &dpay[t];
                     let l = texel_local(local, rr, t);
                     let (j, _) = texel_frame(topo, &frames, &verts, t);

@@ -50,6 +50,9 @@ pub struct Topology {
     pub num_vertices: usize,
     pub layout: UvLayout,
     pub samples: SampleGrid,
+    /// Per texel: whether some sample reads it (a bilinear tap of non-zero weight); built on
+    /// first use.
+    tapped: std::sync::OnceLock<Vec<bool>>,
     /// Index tables of the GPU implementation, built on first use.
     gpu_tables: std::sync::OnceLock<tables::GpuTables>,
     /// Those tables uploaded, per device (shared by clones of the topology).
@@ -73,8 +76,27 @@ impl Topology {
             num_vertices: mesh.positions.len(),
             layout,
             samples,
+            tapped: std::sync::OnceLock::new(),
             gpu_tables: std::sync::OnceLock::new(),
             gpu_cache: Arc::default(),
+        })
+    }
+
+    /// Per texel `[R * R]`: whether any kept sample reads it. About half of the texels of a
+    /// head's layout are read (the rest lie between UV islands or under dropped samples), so
+    /// the CPU lifting skips the others.
+    pub fn tapped(&self) -> &[bool] {
+        self.tapped.get_or_init(|| {
+            let s = &self.samples;
+            let mut tapped = vec![false; self.res() * self.res()];
+            for (taps, weights) in s.taps.iter().zip(&s.weights) {
+                for (&t, &w) in taps.iter().zip(weights) {
+                    if w != 0.0 {
+                        tapped[t as usize] = true;
+                    }
+                }
+            }
+            tapped
         })
     }
 
