@@ -102,9 +102,90 @@ pub fn project_all(scene: &Scene, cam: &ProjCamera) -> Vec<Option<Projection>> {
 /// Tile rows per binning band: bands are binned in parallel, each scanning every Gaussian.
 const BIN_BAND_ROWS: u32 = 8;
 
+/// A Gaussian as the band scans see it: index, inclusive tile box, and its ellipse.
+#[derive(Clone, Copy)]
+struct Binned {
+    g: u32,
+    tiles: [u16; 4],
+    ellipse: TileEllipse,
+}
+
+/// The ellipse `sigma(d) = (a dx² + 2 b dx dy + c dy²) / 2 <= cut` of a projected
+/// Gaussian (`d` from its mean), for [`TileEllipse::row_tiles`].
+#[derive(Clone, Copy)]
+struct TileEllipse {
+    u: f32,
+    v: f32,
+    /// `b / a` and `1 / a`.
+    b_a: f32,
+    inv_a: f32,
+    /// `a c - b²` (> 0) and `2 a cut`: the chord at `dy` is `sqrt(2 a cut - det dy²) / a`
+    /// either side of `-b dy / a`.
+    det: f32,
+    two_a_cut: f32,
+    /// Half the ellipse's height, and the `dy` of its leftmost point (the rightmost is at
+    /// `-dy_left`).
+    half_height: f32,
+    dy_left: f32,
+}
+
+/// Slack on the tile test's cut, in units of sigma (the per-pixel test adds
+/// [`lanes::SIGMA_CUT_SLACK`]; this is more, so rounding never drops a reached tile).
+const TILE_TEST_SLACK: f32 = 0.05;
+
+impl TileEllipse {
+    fn new(p: &Projection) -> Self {
+        let s = &p.splat;
+        let cut = s.sigma_cut + lanes::SIGMA_CUT_SLACK + TILE_TEST_SLACK;
+        let det = s.a * s.c - s.b * s.b;
+        let half_width = (2.0 * s.c * cut / det).sqrt();
+        TileEllipse {
+            u: s.u,
+            v: s.v,
+            b_a: s.b / s.a,
+            inv_a: 1.0 / s.a,
+            det,
+            two_a_cut: 2.0 * s.a * cut,
+            half_height: (2.0 * s.a * cut / det).sqrt(),
+            dy_left: s.b * half_width / s.c,
+        }
+    }
+
+    /// The tile columns of tile row `ty`, within `[tx0, tx1]`, whose pixel centres the
+    /// ellipse may reach: the ellipse's x-range over the band of the row's pixel-centre
+    /// heights, whose ends lie at the band's clamp of the leftmost and rightmost points.
+    /// `None` when the band misses the ellipse; non-finite values keep the whole row.
+    fn row_tiles(&self, ty: u32, tx0: u32, tx1: u32) -> Option<(u32, u32)> {
+        let y0 = (ty * TILE_SIZE) as f32 + 0.5 - self.v;
+        let (lo, hi) = (
+            y0.max(-self.half_height),
+            (y0 + (TILE_SIZE - 1) as f32).min(self.half_height),
+        );
+        if lo > hi {
+            return None;
+        }
+        let x_at = |dy: f32, side: f32| {
+            let chord = (self.two_a_cut - self.det * dy * dy).max(0.0).sqrt() * self.inv_a;
+            -self.b_a * dy + side * chord
+        };
+        let left = self.u + x_at(self.dy_left.clamp(lo, hi), -1.0);
+        let right = self.u + x_at((-self.dy_left).clamp(lo, hi), 1.0);
+        // Pixel columns with centres in [left, right], as tiles; `max`/`min` drop NaN.
+        let first = ((left - 0.5).ceil().max(0.0) as u32 / TILE_SIZE).max(tx0);
+        let last = ((right - 0.5).floor().max(0.0) as u32 / TILE_SIZE).min(tx1);
+        if !(left.is_finite() && right.is_finite()) {
+            return Some((tx0, tx1));
+        }
+        (first <= last && right >= 0.5).then_some((first, last))
+    }
+}
+
 /// Bins visible Gaussians into tiles: sorted by (depth, index), then, per band of tile rows
 /// in parallel, a stable counting sort by tile, so every tile lists its Gaussians front to
-/// back.
+/// back. A Gaussian whose box spans several tile rows and columns is only listed, row by
+/// row, in the tiles its ellipse reaches ([`TileEllipse::row_tiles`]; a tilted ellipse
+/// leaves box corners empty); one whose box is a single row or column of tiles reaches all
+/// of them.
 pub fn bin(projections: &[Option<Projection>], cam: &ProjCamera) -> Bins {
     let (tiles_x, tiles_y) = cam.tiles();
     let num_tiles = (tiles_x * tiles_y) as usize;
@@ -116,32 +197,44 @@ pub fn bin(projections: &[Option<Projection>], cam: &ProjCamera) -> Bins {
         .filter_map(|(i, p)| p.map(|p| ((p.depth.to_bits() as u64) << 32) | i as u64))
         .collect();
     keys.par_sort_unstable();
-    // Depth-ordered Gaussians with their tile boxes, compact for the band scans below.
-    let boxes: Vec<(u32, [u16; 4])> = keys
+    // Depth-ordered Gaussians with their tile boxes and ellipses, compact for the band
+    // scans below (the keys only hold visible Gaussians).
+    let boxes: Vec<Binned> = keys
         .par_iter()
-        .map(|&k| {
+        .filter_map(|&k| {
             let g = k as u32;
-            let b = projections[g as usize].map_or((1, 1, 0, 0), |p| p.pixels.tiles());
-            (g, [b.0 as u16, b.1 as u16, b.2 as u16, b.3 as u16])
+            let p = projections[g as usize].as_ref()?;
+            let b = p.pixels.tiles();
+            Some(Binned {
+                g,
+                tiles: [b.0 as u16, b.1 as u16, b.2 as u16, b.3 as u16],
+                ellipse: TileEllipse::new(p),
+            })
         })
         .collect();
     let bands: Vec<(u32, u32)> = (0..tiles_y)
         .step_by(BIN_BAND_ROWS as usize)
         .map(|y0| (y0, (y0 + BIN_BAND_ROWS).min(tiles_y)))
         .collect();
-    // Pass 1: per-tile counts, band by band.
-    let counts: Vec<Vec<u32>> = bands
+    // Pass 1: each band's runs of tiles (depth order) and its per-tile counts.
+    let runs: Vec<(Vec<Run>, Vec<u32>)> = bands
         .par_iter()
         .map(|band| {
             let first = (band.0 * tiles_x) as usize;
+            let runs = band_runs(&boxes, *band);
             let mut c = vec![0u32; ((band.1 - band.0) * tiles_x) as usize];
-            visit_band(&boxes, *band, tiles_x, |t, _| c[t - first] += 1);
-            c
+            for r in &runs {
+                let row = (r.ty as u32 * tiles_x) as usize - first;
+                for tx in r.first..=r.last {
+                    c[row + tx as usize] += 1;
+                }
+            }
+            (runs, c)
         })
         .collect();
     let mut tile_ranges = Vec::with_capacity(num_tiles);
     let mut total = 0u32;
-    for &c in counts.iter().flatten() {
+    for &c in runs.iter().flat_map(|(_, c)| c) {
         tile_ranges.push([total, total + c]);
         total += c;
     }
@@ -149,25 +242,28 @@ pub fn bin(projections: &[Option<Projection>], cam: &ProjCamera) -> Bins {
     let mut gaussian_from_isect = vec![0u32; total as usize];
     let mut parts = Vec::with_capacity(bands.len());
     let mut rest: &mut [u32] = &mut gaussian_from_isect;
-    for band in &bands {
+    for (band, (band_runs, _)) in bands.iter().zip(&runs) {
         let first = (band.0 * tiles_x) as usize;
         let end = (band.1 * tiles_x) as usize;
         let len = (tile_ranges[end - 1][1] - tile_ranges[first][0]) as usize;
         let (head, tail) = rest.split_at_mut(len);
-        parts.push((band, head));
+        parts.push((band, band_runs, head));
         rest = tail;
     }
-    parts.into_par_iter().for_each(|(band, part)| {
+    parts.into_par_iter().for_each(|(band, band_runs, part)| {
         let first = (band.0 * tiles_x) as usize;
         let base = tile_ranges[first][0];
         let mut cursor: Vec<u32> = (first..(band.1 * tiles_x) as usize)
             .map(|t| tile_ranges[t][0] - base)
             .collect();
-        visit_band(&boxes, *band, tiles_x, |t, g| {
-            let c = &mut cursor[t - first];
-            part[*c as usize] = g;
-            *c += 1;
-        });
+        for r in band_runs {
+            let row = (r.ty as u32 * tiles_x) as usize - first;
+            for tx in r.first..=r.last {
+                let c = &mut cursor[row + tx as usize];
+                part[*c as usize] = r.g;
+                *c += 1;
+            }
+        }
     });
     Bins {
         gaussian_from_isect,
@@ -175,22 +271,38 @@ pub fn bin(projections: &[Option<Projection>], cam: &ProjCamera) -> Bins {
     }
 }
 
-/// Calls `visit(tile, gaussian)` for every tile of the band of tile rows `[y0, y1)` that each
-/// Gaussian of `boxes` (depth order, with its inclusive tile box) touches.
-fn visit_band(
-    boxes: &[(u32, [u16; 4])],
-    (y0, y1): (u32, u32),
-    tiles_x: u32,
-    mut visit: impl FnMut(usize, u32),
-) {
-    for &(g, [tx0, ty0, tx1, ty1]) in boxes {
-        let (ty0, ty1) = ((ty0 as u32).max(y0), (ty1 as u32 + 1).min(y1));
-        for ty in ty0..ty1 {
-            for tx in tx0 as u32..=tx1 as u32 {
-                visit((ty * tiles_x + tx) as usize, g);
+/// A Gaussian's tiles in one tile row: columns `first..=last` of row `ty`.
+struct Run {
+    g: u32,
+    ty: u16,
+    first: u16,
+    last: u16,
+}
+
+/// The runs of tiles that each Gaussian of `boxes` (depth order) touches in the band of tile
+/// rows `[y0, y1)`, in depth order: its tile box, less the tiles its ellipse misses.
+fn band_runs(boxes: &[Binned], (y0, y1): (u32, u32)) -> Vec<Run> {
+    let mut runs = Vec::new();
+    for b in boxes {
+        let [tx0, ty0, tx1, ty1] = b.tiles.map(u32::from);
+        let test = tx1 > tx0 && ty1 > ty0;
+        for ty in ty0.max(y0)..(ty1 + 1).min(y1) {
+            let row = if test {
+                b.ellipse.row_tiles(ty, tx0, tx1)
+            } else {
+                Some((tx0, tx1))
+            };
+            if let Some((first, last)) = row {
+                runs.push(Run {
+                    g: b.g,
+                    ty: ty as u16,
+                    first: first as u16,
+                    last: last as u16,
+                });
             }
         }
     }
+    runs
 }
 
 /// Pixel rectangle of tile `t`.
@@ -481,6 +593,63 @@ mod tests {
                 })
             })
             .collect()
+    }
+
+    /// The tile rows' column ranges hold every tile with a pixel centre inside the ellipse
+    /// (brute force over each tile's 256 centres), and they do drop the empty corners of
+    /// tilted ellipses.
+    #[test]
+    fn tile_rows_keep_every_reached_tile() {
+        let mut rng = Pcg::new(21);
+        let (mut dropped, mut kept) = (0, 0);
+        for _ in 0..3000 {
+            let (sx, sy) = (0.5 + 30.0 * rng.uniform(), 0.5 + 30.0 * rng.uniform());
+            let rho = 0.999 * (2.0 * rng.uniform() - 1.0);
+            let det = sx * sx * sy * sy * (1.0 - rho * rho);
+            let opacity = 0.01 + 0.99 * rng.uniform();
+            let p = Projection {
+                splat: Splat2d {
+                    u: 64.0 * rng.uniform(),
+                    v: 64.0 * rng.uniform(),
+                    a: sy * sy / det,
+                    b: -rho * sx * sy / det,
+                    c: sx * sx / det,
+                    opacity,
+                    rgb: [0.5; 3],
+                    sigma_cut: (255.0 * opacity).ln(),
+                },
+                depth: 1.0,
+                pixels: PixelBox {
+                    x0: 0,
+                    y0: 0,
+                    x1: 63,
+                    y1: 63,
+                },
+            };
+            let (s, e) = (&p.splat, TileEllipse::new(&p));
+            let cut = s.sigma_cut + lanes::SIGMA_CUT_SLACK;
+            for ty in 0..4 {
+                let row = e.row_tiles(ty, 0, 3);
+                for tx in 0..4 {
+                    let reached = (0..TILE_SIZE * TILE_SIZE).any(|k| {
+                        let dx = (tx * TILE_SIZE + k % TILE_SIZE) as f32 + 0.5 - s.u;
+                        let dy = (ty * TILE_SIZE + k / TILE_SIZE) as f32 + 0.5 - s.v;
+                        0.5 * (s.a * dx * dx + 2.0 * s.b * dx * dy + s.c * dy * dy) <= cut
+                    });
+                    let listed = row.is_some_and(|(a, b)| (a..=b).contains(&tx));
+                    assert!(listed || !reached, "{s:?}: tile ({tx}, {ty}) dropped");
+                    if listed {
+                        kept += 1;
+                    } else {
+                        dropped += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            dropped > 1000 && kept > 1000,
+            "{dropped} dropped, {kept} kept"
+        );
     }
 
     /// The dispatched (AVX2 where the CPU has it) and the baseline builds of the tile loops
