@@ -181,7 +181,7 @@ impl WnLinear {
     }
 
     /// For inference: stores the effective weight in `v` so that forward passes skip the
-    /// norm (the weight is then a constant: no gradient reaches `v` or `g`).
+    /// norm (training would then move the weight itself, without the norm: train unfolded).
     pub fn fold(self) -> Self {
         let (v, g) = fold_v_g(self.effective_weight(), 0);
         Self {
@@ -275,7 +275,7 @@ impl WnConv2d {
     }
 
     /// For inference: stores the effective weight in `v` so that forward passes skip the
-    /// norm (the weight is then a constant: no gradient reaches `v` or `g`).
+    /// norm (training would then move the weight itself, without the norm: train unfolded).
     pub fn fold(self) -> Self {
         let (v, g) = fold_v_g(self.effective_weight(), 0);
         Self {
@@ -371,7 +371,7 @@ impl WnConvTranspose2d {
     }
 
     /// For inference: stores the effective weight in `v` so that forward passes skip the
-    /// norm (the weight is then a constant: no gradient reaches `v` or `g`).
+    /// norm (training would then move the weight itself, without the norm: train unfolded).
     pub fn fold(self) -> Self {
         let (v, g) = fold_v_g(self.effective_weight(), 1);
         Self {

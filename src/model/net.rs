@@ -472,9 +472,8 @@ impl TexAvatarNet {
     }
 
     /// For inference: every layer's weight norm folded into its weight, so forward passes
-    /// skip the norms (8-10 % of the `paper` decoders' forward on the CPU). The folded net
-    /// computes the same function and saves as an ordinary one; gradients no longer reach
-    /// the weights.
+    /// skip the norms (about 13 % of the `paper` decoders' forward on the CPU). The folded net
+    /// computes the same function and saves as an ordinary one; it is not for training.
     pub fn fold(self) -> Self {
         Self {
             exp2code: self.exp2code.fold(),

@@ -157,6 +157,8 @@ impl TileEllipse {
     /// `None` when the band misses the ellipse; non-finite values keep the whole row.
     fn row_tiles(&self, ty: u32, tx0: u32, tx1: u32) -> Option<(u32, u32)> {
         let y0 = (ty * TILE_SIZE) as f32 + 0.5 - self.v;
+        // `max` and `min` drop a NaN height, so `lo` and `hi` are finite (the clamps below
+        // need that).
         let (lo, hi) = (
             y0.max(-self.half_height),
             (y0 + (TILE_SIZE - 1) as f32).min(self.half_height),
@@ -170,13 +172,16 @@ impl TileEllipse {
         };
         let left = self.u + x_at(self.dy_left.clamp(lo, hi), -1.0);
         let right = self.u + x_at((-self.dy_left).clamp(lo, hi), 1.0);
-        // Pixel columns with centres in [left, right], as tiles; `max`/`min` drop NaN.
-        let first = ((left - 0.5).ceil().max(0.0) as u32 / TILE_SIZE).max(tx0);
-        let last = ((right - 0.5).floor().max(0.0) as u32 / TILE_SIZE).min(tx1);
         if !(left.is_finite() && right.is_finite()) {
             return Some((tx0, tx1));
         }
-        (first <= last && right >= 0.5).then_some((first, last))
+        if right < 0.5 {
+            return None;
+        }
+        // Pixel columns with centres in [left, right], as tiles.
+        let first = ((left - 0.5).ceil().max(0.0) as u32 / TILE_SIZE).max(tx0);
+        let last = ((right - 0.5).floor() as u32 / TILE_SIZE).min(tx1);
+        (first <= last).then_some((first, last))
     }
 }
 
