@@ -172,6 +172,8 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
             run: run_dir.clone(),
             out: report.clone(),
             splits: vec![Split::Val, Split::Test, Split::Free],
+            extra: Vec::new(),
+            head: None,
             lpips: have_weights,
             stride: opts.eval_stride,
             panels: 6,

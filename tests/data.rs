@@ -329,8 +329,12 @@ fn items_round_trip() {
         assert_eq!(item.pose, pose(t).pose15());
         let want_eta = if t == 0 { eta0() } else { vec![0.0; ETA_DIM] };
         assert_eq!(item.eta, want_eta);
+        // One identity per subject: timestep 0's shape and static offsets (the first
+        // timestep of the training split, GaussianAvatars' `load_meshes`) for every frame.
         let posed = HeadPose {
             expr: want_expr,
+            shape: pose(0).shape,
+            static_offset: pose(0).static_offset,
             ..pose(t)
         };
         assert_eq!(item.vertices, lbs(&fx.model, &posed).expect("lbs"));
@@ -447,9 +451,15 @@ fn burn_data_loader_batches_the_dataset() {
 fn item_fails(name: &str, index: usize, edit: impl FnOnce(&Fixture), parts: &[&str]) {
     let fx = Fixture::new(name);
     edit(&fx);
-    let ds = fx.open().expect("open");
-    assert_names(ds.load_item(index).expect_err(name), parts);
-    assert_names(Dataset::get(&ds, index).expect_err(name), parts);
+    // The subject's identity is read when the dataset opens: a broken first timestep fails
+    // there.
+    match fx.open() {
+        Err(e) => assert_names(e, parts),
+        Ok(ds) => {
+            assert_names(ds.load_item(index).expect_err(name), parts);
+            assert_names(Dataset::get(&ds, index).expect_err(name), parts);
+        }
+    }
 }
 
 #[test]
@@ -484,7 +494,7 @@ fn npz_wrong_shape() {
         |fx| {
             let mut a = arrays(&pose(0));
             a.retain(|(n, _, _)| *n != "static_offset");
-            a.push(("static_offset", vec![1, 2, 3], vec![0.0; 6]));
+            a.push(("static_offset", vec![1, 7, 3], vec![0.0; 21]));
             write_arrays(&fx.path("flame_param/00000.npz"), &a);
         },
         &["00000.npz", "`static_offset`", "6 vertices"],
@@ -547,16 +557,12 @@ fn missing_image_file() {
             "00001_01.png",
         ],
     );
-    item_fails(
-        "no-mask",
-        0,
-        |fx| std::fs::remove_file(fx.path("fg_masks/00000_00.png")).expect("rm"),
-        &[
-            "transforms_train.json",
-            "frames[0].fg_mask_path",
-            "00000_00.png",
-        ],
-    );
+    // Masks are optional (GaussianAvatars never reads them): a named mask file that does
+    // not exist means no mask.
+    let fx = Fixture::new("no-mask");
+    std::fs::remove_file(fx.path("fg_masks/00000_00.png")).expect("rm");
+    let item = fx.open().expect("open").load_item(0).expect("item");
+    assert!(item.mask.iter().all(|&m| m == 1.0));
 }
 
 #[test]
@@ -616,4 +622,201 @@ fn index_past_the_end_is_an_error() {
         &["transforms_train.json", "`frames`", "index 4"],
     );
     assert!(Dataset::get(&ds, 4).is_err());
+}
+
+/// A hand-written export in VHAP's and GaussianAvatars' conventions (not through our
+/// writer): two sequences of a union export with different `shape` and `static_offset`, an
+/// off-centre principal point, a `file_path` without `.png`, an RGBA image, no masks,
+/// `camera_id`/`timestep_id` strings, and a second split with GaussianAvatars' minimum
+/// (`camera_angle_x` only).
+#[test]
+fn vhap_style_export_is_read_as_the_peers_mean_it() {
+    let root = std::env::temp_dir().join(format!("texavatars-data-{}-vhap", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let (w, h) = (16u32, 12u32);
+    let model = Arc::new(tiny());
+    // Sequence A: shape 0.1, offsets for 4 of the 6 vertices (zero-padded, as
+    // GaussianAvatars' `FlameGaussianModel.load_meshes` pads them). Sequence B: another
+    // subject fit.
+    let seq_pose = |seq: usize| HeadPose {
+        shape: vec![if seq == 0 { 0.1 } else { -0.3 }],
+        expr: vec![0.2 * seq as f32, 0.0, 0.1],
+        jaw: [0.1 * seq as f32, 0.0, 0.0],
+        static_offset: Some(vec![[0.01 + 0.02 * seq as f32, 0.0, 0.0]; 4]),
+        ..Default::default()
+    };
+    for (seq, name) in ["A", "B"].iter().enumerate() {
+        let d = root.join(name);
+        std::fs::create_dir_all(d.join("images")).expect("dir");
+        std::fs::create_dir_all(d.join("flame_param")).expect("dir");
+        write_arrays(&d.join("flame_param/00000.npz"), &arrays(&seq_pose(seq)));
+        // RGBA: left half transparent (white after compositing), right half opaque red.
+        image::RgbaImage::from_fn(w, h, |x, _| {
+            if x < w / 2 {
+                image::Rgba([0, 0, 255, 0])
+            } else {
+                image::Rgba([255, 0, 0, 255])
+            }
+        })
+        .save(d.join("images/00000_00.png"))
+        .expect("png");
+    }
+    let union = root.join("union");
+    std::fs::create_dir_all(&union).expect("dir");
+    // VHAP's camera-to-world (OpenGL) for a camera at z = +3 looking down -z; intrinsics
+    // as VHAP stores them: cy is `h - cy_opencv` (`vhap/util/camera.py`,
+    // `convert_camera_convention`, "opencv->opengl").
+    let frame = |seq: &str, t: usize| {
+        json!({
+            "timestep_index": t, "camera_index": 0,
+            "camera_id": "222200037", "timestep_id": "frame_00000",
+            "file_path": format!("../{seq}/images/00000_00"),
+            "flame_param_path": format!("../{seq}/flame_param/00000.npz"),
+            "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]],
+            "cx": 5.0, "cy": 2.0, "fl_x": 30.0, "fl_y": 30.0, "h": h, "w": w,
+        })
+    };
+    let train = json!({
+        "cx": 8.0, "cy": 6.0, "fl_x": 99.0, "fl_y": 99.0, "h": h, "w": w,
+        "frames": [frame("A", 0), frame("B", 1)],
+    });
+    std::fs::write(union.join("transforms_train.json"), train.to_string()).expect("json");
+    // GaussianAvatars' minimum: only camera_angle_x (2 atan(8 / 30): focal 30 for w = 16).
+    let angle = 2.0 * (8.0f32 / 30.0).atan();
+    let test = json!({
+        "camera_angle_x": angle,
+        "frames": [{
+            "timestep_index": 1, "camera_index": 0, "w": w, "h": h,
+            "file_path": "../B/images/00000_00.png",
+            "flame_param_path": "../B/flame_param/00000.npz",
+            "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]],
+        }],
+    });
+    std::fs::write(union.join("transforms_test.json"), test.to_string()).expect("json");
+
+    let ds = HeadDataset::open(&union, Split::Train, model.clone()).expect("open");
+    let a = ds.load_item(0).expect("A");
+    let b = ds.load_item(1).expect("B");
+    // The world point (0.1, 0.2, 0) is 3 in front of the camera with y flipped (OpenCV):
+    // (0.1, -0.2, 3). By hand: u = 30 * 0.1 / 3 + 5 = 6, v = 30 * -0.2 / 3 + (12 - 2) = 8.
+    let project = |c: &texavatars::camera::Camera, p: [f32; 3]| {
+        let m = c.world_to_camera;
+        let q: [f32; 3] =
+            std::array::from_fn(|i| (0..3).map(|k| m[i][k] * p[k]).sum::<f32>() + m[i][3]);
+        (c.fx * q[0] / q[2] + c.cx, c.fy * q[1] / q[2] + c.cy)
+    };
+    let (u, v) = project(&a.camera, [0.1, 0.2, 0.0]);
+    assert!(
+        (u - 6.0).abs() < 1e-5 && (v - 8.0).abs() < 1e-5,
+        "({u}, {v})"
+    );
+    // `.png` appended to a file_path without it (GaussianAvatars' readCamerasFromTransforms).
+    assert!(a.image_path.ends_with("A/images/00000_00.png"));
+    // RGBA composited on white; no masks: all ones.
+    assert_eq!(&a.image[..3], &[1.0, 1.0, 1.0]);
+    let right = ((w - 1) * 3) as usize;
+    assert_eq!(&a.image[right..right + 3], &[1.0, 0.0, 0.0]);
+    assert!(a.mask.iter().all(|&m| m == 1.0));
+    // One identity for the subject: sequence A's shape and zero-padded offsets pose B too.
+    let id = ds.identity();
+    assert_eq!(id.shape, vec![0.1]);
+    let mut padded = vec![[0.01, 0.0, 0.0]; 4];
+    padded.extend([[0.0; 3]; 2]);
+    assert_eq!(id.static_offset.as_deref(), Some(padded.as_slice()));
+    let posed_b = HeadPose {
+        expr: seq_pose(1).expr,
+        shape: vec![0.1],
+        static_offset: Some(padded.clone()),
+        ..seq_pose(1)
+    };
+    assert_eq!(b.vertices, lbs(&model, &posed_b).expect("lbs"));
+    // The test split takes the training split's identity, and camera_angle_x alone gives a
+    // centred pinhole with fx = fy.
+    let t = HeadDataset::open(&union, Split::Test, model.clone()).expect("test split");
+    assert_eq!(t.identity().shape, vec![0.1]);
+    let c = t.load_item(0).expect("test item").camera;
+    assert!((c.fx - 30.0).abs() < 1e-3 && c.fy == c.fx, "{c:?}");
+    assert_eq!((c.cx, c.cy), (8.0, 6.0));
+    // canonical_flame_param.npz, when present, is the subject (VHAP's combine step copies it).
+    let canonical = HeadPose {
+        shape: vec![0.5],
+        ..HeadPose::default()
+    };
+    canonical
+        .save_npz(&union.join("canonical_flame_param.npz"))
+        .expect("canonical");
+    let ds = HeadDataset::open(&union, Split::Train, model.clone()).expect("open");
+    assert_eq!(ds.identity().shape, vec![0.5]);
+    assert_eq!(ds.identity().static_offset, None);
+
+    // Offsets for VHAP's 120 teeth vertices more than the model: the error names the command.
+    let mut teeth = seq_pose(0);
+    teeth.static_offset = Some(vec![[0.0; 3]; V + 120]);
+    teeth
+        .save_npz(&union.join("canonical_flame_param.npz"))
+        .expect("teeth");
+    assert_names(
+        HeadDataset::open(&union, Split::Train, model.clone()).expect_err("teeth offsets"),
+        &[
+            "canonical_flame_param.npz",
+            "`static_offset`",
+            "head add-teeth",
+        ],
+    );
+    std::fs::remove_file(union.join("canonical_flame_param.npz")).expect("rm");
+
+    // A motion of T frames in one file, as GaussianAvatars' flame_param.npz holds it:
+    // (T, ·) per-frame arrays, shape and static_offset once, dynamic_offset ignored.
+    let tt = 3;
+    let motion_file = root.join("flame_param.npz");
+    let rows = |n: usize, f: &dyn Fn(usize, usize) -> f32| -> Vec<f32> {
+        (0..tt * n).map(|i| f(i / n, i % n)).collect()
+    };
+    NpzOut::default()
+        .floats(
+            "translation",
+            &[tt, 3],
+            rows(3, &|t, k| (k == 2) as u8 as f32 * t as f32),
+        )
+        .floats("rotation", &[tt, 3], rows(3, &|_, _| 0.0))
+        .floats("neck_pose", &[tt, 3], rows(3, &|_, _| 0.0))
+        .floats(
+            "jaw_pose",
+            &[tt, 3],
+            rows(3, &|t, k| (k == 0) as u8 as f32 * 0.1 * t as f32),
+        )
+        .floats("eyes_pose", &[tt, 6], rows(6, &|_, _| 0.0))
+        .floats("expr", &[tt, 5], rows(5, &|t, k| 0.1 * (t + k) as f32))
+        .floats("shape", &[1], vec![-0.7])
+        .floats("static_offset", &[1, V, 3], vec![0.3; V * 3])
+        .floats("dynamic_offset", &[tt, V, 3], vec![9.0; tt * V * 3])
+        .write(&motion_file)
+        .expect("motion");
+    let identity = texavatars::data::Identity {
+        shape: vec![0.1],
+        ..Default::default()
+    };
+    let motion = texavatars::drive::Motion::load(
+        &motion_file,
+        &model,
+        &texavatars::head::HeadMeta::default(),
+        &identity,
+    )
+    .expect("motion");
+    assert_eq!(motion.frames.len(), tt);
+    for (t, f) in motion.frames.iter().enumerate() {
+        let pose = HeadPose {
+            shape: vec![0.1],
+            expr: (0..E).map(|k| 0.1 * (t + k) as f32).collect(),
+            jaw: [0.1 * t as f32, 0.0, 0.0],
+            translation: [0.0, 0.0, t as f32],
+            ..Default::default()
+        };
+        assert_eq!(
+            f.conditioning.vertices,
+            lbs(&model, &pose).expect("lbs"),
+            "frame {t}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&root);
 }

@@ -27,6 +27,8 @@ fn trained_avatar_is_scored_on_every_split() {
         run: run.clone(),
         out: dir("out"),
         splits: vec![Split::Val, Split::Test, Split::Free],
+        extra: Vec::new(),
+        head: None,
         lpips: false,
         stride: 4,
         panels: 1,
@@ -77,6 +79,16 @@ fn trained_avatar_is_scored_on_every_split() {
     let mut said = String::new();
     let r = evaluate(&opts, &mut |l| said.push_str(l)).expect("eval");
     assert!(r.means.is_empty() && said.contains("skipped"), "{said}");
+    // An extra split: any export's transforms file under a name of its own, posed with the
+    // avatar's subject (the run's canonical_flame_param.npz, written by train).
+    assert!(run.join("canonical_flame_param.npz").is_file());
+    opts.splits = Vec::new();
+    opts.extra = vec![("held".into(), union.join("transforms_test.json"))];
+    let r = evaluate(&opts, &mut |_| {}).expect("extra split");
+    let m = r.means.get("held").expect("held");
+    assert_eq!(m.images, 32usize.div_ceil(4));
+    assert!(r.table.contains("| held |"), "{}", r.table);
+    assert!(opts.out.join("images/held").is_dir());
     for d in [&data, &run, &opts.out] {
         let _ = std::fs::remove_dir_all(d);
     }

@@ -20,9 +20,17 @@ pub struct EvalArgs {
     /// Output folder (metrics.json, table.md, images/).
     #[arg(long)]
     pub out: PathBuf,
-    /// Splits, comma-separated.
+    /// Splits of `--data`, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "val,test,free")]
     pub splits: Vec<Split>,
+    /// An extra split, NAME=PATH: any VHAP export of the subject (`PATH` a
+    /// `transforms*.json`), e.g. `--split free=../FREE_export/transforms.json`. Repeatable.
+    #[arg(long = "split", value_parser = parse_extra)]
+    pub extra: Vec<(String, PathBuf)>,
+    /// The head model the avatar was trained with (`.npz`, its `.obj` next to it). Default:
+    /// `DATA/../head/head.npz` when present, else the embedded head.
+    #[arg(long)]
+    pub head: Option<PathBuf>,
     /// Skip LPIPS (no pretrained weights needed).
     #[arg(long)]
     pub no_lpips: bool,
@@ -44,6 +52,8 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         run: a.run,
         out: a.out.clone(),
         splits: a.splits,
+        extra: a.extra,
+        head: a.head,
         lpips: !a.no_lpips,
         stride: a.stride,
         panels: a.panels,
@@ -57,4 +67,26 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         report.seconds
     );
     Ok(())
+}
+
+/// Parses `NAME=PATH` of `--split`.
+fn parse_extra(s: &str) -> Result<(String, PathBuf), String> {
+    let (name, path) = s
+        .split_once('=')
+        .ok_or_else(|| format!("{s:?}: expected NAME=PATH/transforms.json"))?;
+    let name = name.trim();
+    if name.is_empty()
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "_-".contains(c))
+    {
+        return Err(format!(
+            "{name:?}: a split name is letters, digits, '_' and '-' (it names a folder)"
+        ));
+    }
+    let path = PathBuf::from(path);
+    if !path.is_file() {
+        return Err(format!("{}: no such file", path.display()));
+    }
+    Ok((name.to_string(), path))
 }

@@ -15,8 +15,8 @@ use crate::splat::ply;
 /// Export commands.
 #[derive(Debug, Subcommand)]
 pub enum ExportCommand {
-    /// Per-frame world-space 3DGS PLY files (INRIA layout, SH degree 0), with each frame's
-    /// camera as JSON (`splat render --camera`).
+    /// Per-frame world-space 3DGS PLY files (INRIA layout, SH degree 0 unless
+    /// `--sh-degree`), with each frame's camera as JSON (`splat render --camera`).
     Ply(PlyArgs),
 }
 
@@ -33,6 +33,10 @@ pub struct PlyArgs {
     /// image `FFFFF_render.npy`), e.g. to compare with `splat render`.
     #[arg(long)]
     pub render: bool,
+    /// SH degree of the files (0-3): above 0, `f_rest_*` coefficients are written as zeros
+    /// (the same colours) for 3DGS loaders that insist on a degree (3: 45 `f_rest_*`).
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
+    pub sh_degree: u8,
 }
 
 /// Runs an export command.
@@ -57,12 +61,13 @@ fn ply_command(a: PlyArgs) -> anyhow::Result<()> {
         let cov6 = host(g.cov6);
         let colors = host(g.colors);
         let opacities: Vec<f32> = g.opacities.into_data().iter::<f32>().collect();
-        let (p, stats) = drive::to_ply(&HostGaussians {
+        let (mut p, stats) = drive::to_ply(&HostGaussians {
             means: &means,
             cov6: &cov6,
             colors: &colors,
             opacities: &opacities,
         })?;
+        p.pad_sh_degree(a.sh_degree.into())?;
         ply::write(&a.out.join(format!("{i:05}.ply")), &p)?;
         let cam_path = a.out.join(format!("{i:05}_camera.json"));
         let cam_file = CameraFile {
@@ -97,4 +102,41 @@ fn ply_command(a: PlyArgs) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(subcommand)]
+        cmd: ExportCommand,
+    }
+
+    fn parse(extra: &[&str]) -> Result<PlyArgs, clap::Error> {
+        let base = [
+            "t",
+            "ply",
+            "--checkpoint",
+            "c",
+            "--motion",
+            "m",
+            "--out",
+            "o",
+        ];
+        Cli::try_parse_from(base.iter().chain(extra)).map(|c| match c.cmd {
+            ExportCommand::Ply(a) => a,
+        })
+    }
+
+    #[test]
+    fn sh_degree_defaults_to_0_and_is_at_most_3() {
+        assert_eq!(parse(&[]).unwrap().sh_degree, 0);
+        assert_eq!(parse(&["--sh-degree", "3"]).unwrap().sh_degree, 3);
+        let e = parse(&["--sh-degree", "4"]).unwrap_err().to_string();
+        assert!(e.contains("--sh-degree") && e.contains("0..=3"), "{e}");
+    }
 }

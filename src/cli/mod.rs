@@ -37,7 +37,7 @@ pub enum Command {
     /// Export a driven avatar (per-frame 3DGS PLY files).
     #[command(subcommand)]
     Export(export::ExportCommand),
-    /// Head models: import the default head, print a summary.
+    /// Head models: import the default head, print a summary, add VHAP's teeth.
     #[command(subcommand)]
     Head(head::HeadCommand),
     /// PSNR, SSIM and LPIPS (alex, vgg, GaussianAvatars' unscaled variant) between two

@@ -59,8 +59,9 @@ pub struct DriveArgs {
     #[arg(long)]
     pub frames: Option<String>,
     /// The avatar's subject for FLAME-parameter and curve motions: a `flame_param` `.npz`
-    /// whose shape and static offsets are used (e.g. the training data's
-    /// `canonical_flame_param.npz`). Default: the head model's mean shape.
+    /// whose shape and static offsets are used. Default: the run's
+    /// `canonical_flame_param.npz` (the subject it was trained on), else the head model's
+    /// mean shape.
     #[arg(long)]
     pub identity: Option<PathBuf>,
     /// The head model the avatar was trained with (`.npz`, its `.obj` next to it). Default:
@@ -126,7 +127,14 @@ impl DriveArgs {
         let avatar = load_avatar(&self.checkpoint, &head, &device)?;
         let identity = match &self.identity {
             Some(p) => Identity::load(p)?,
-            None => Identity::mean(&head.model),
+            None => {
+                let trained = self.checkpoint.join(crate::train::files::IDENTITY);
+                if trained.is_file() {
+                    Identity::load(&trained)?
+                } else {
+                    Identity::mean(&head.model)
+                }
+            }
         };
         let mut motion = Motion::load(&self.motion, &head.model, &head.meta, &identity)?;
         let first = match &self.frames {

@@ -8,9 +8,13 @@
 //!
 //! # Conventions
 //! - Images: 8- or 16-bit PNG, RGB or RGBA; RGBA is composited on white
-//!   (`rgb a + (1 - a)`). Values in [0, 1].
-//! - Masks (`fg_mask_path`): the PNG's grey value (luma for a colour PNG) in [0, 1]; a frame
-//!   without a mask gets all ones.
+//!   (`rgb a + (1 - a)`, as GaussianAvatars' `readCamerasFromTransforms` does). Values in
+//!   [0, 1].
+//! - Masks (`fg_mask_path`): the PNG's grey value (luma for a colour PNG) in [0, 1]. Masks are
+//!   optional, as in GaussianAvatars: a frame without `fg_mask_path`, or whose mask file does
+//!   not exist, gets all ones (the second case is reported once per dataset on stderr).
+//! - Subject: every frame is posed with one [`Identity`] (shape and static offsets) per
+//!   dataset, not with its own file's (see [`crate::data::identity`]).
 //! - Images and masks must have the frame's `w` x `h` pixels.
 //! - Expression coefficients are fitted to the model: a file with fewer than
 //!   `model.num_expr` is zero-padded, one with more is truncated (FLAME files carry 100;
@@ -26,6 +30,7 @@ use std::sync::{Arc, Mutex};
 use burn::data::dataset::{Dataset, DatasetError};
 
 use crate::camera::Camera;
+use crate::data::identity::Identity;
 use crate::data::split::Split;
 use crate::data::vhap::{self, ETA_DIM, VhapFrame};
 use crate::error::{Error, Result};
@@ -103,7 +108,10 @@ pub struct HeadDataset {
     transforms: PathBuf,
     frames: Vec<VhapFrame>,
     model: Arc<HeadModel>,
+    identity: Arc<Identity>,
     cache: Option<Cache>,
+    /// Set once a missing mask file has been reported.
+    mask_warned: std::sync::atomic::AtomicBool,
 }
 
 impl std::fmt::Debug for HeadDataset {
@@ -111,6 +119,7 @@ impl std::fmt::Debug for HeadDataset {
         f.debug_struct("HeadDataset")
             .field("transforms", &self.transforms)
             .field("frames", &self.frames.len())
+            .field("identity", &self.identity.source)
             .field("cached", &self.cache.is_some())
             .finish()
     }
@@ -123,7 +132,9 @@ impl HeadDataset {
     }
 
     /// Opens one `transforms_*.json`. Reads and checks the JSON (every frame must have a
-    /// `flame_param_path`) and the model; images and parameters are read per item.
+    /// `flame_param_path`), the model and the subject's identity
+    /// ([`Identity::of_transforms`], fitted to the model); images and parameters are read per
+    /// item.
     pub fn from_transforms(path: &Path, model: Arc<HeadModel>) -> Result<Self> {
         let what = path.display().to_string();
         model.validate("head model")?;
@@ -145,12 +156,30 @@ impl HeadDataset {
                 "missing; every frame needs its FLAME parameters",
             ));
         }
+        let identity = Arc::new(Identity::of_transforms(path)?.fit(&model)?);
         Ok(HeadDataset {
             transforms: path.to_path_buf(),
             frames,
             model,
+            identity,
             cache: Some(Mutex::default()),
+            mask_warned: Default::default(),
         })
+    }
+
+    /// Poses every frame with `identity` instead of the export's own (e.g. a trained
+    /// avatar's subject when evaluating another export of it).
+    pub fn with_identity(mut self, identity: &Identity) -> Result<Self> {
+        self.identity = Arc::new(identity.fit(&self.model)?);
+        if let Some(cache) = &self.cache {
+            lock(cache).clear();
+        }
+        Ok(self)
+    }
+
+    /// The subject every frame is posed with (fitted to the model).
+    pub fn identity(&self) -> &Identity {
+        &self.identity
     }
 
     /// Turns the per-timestep cache on (the default) or off. The cache keeps one
@@ -223,9 +252,22 @@ impl HeadDataset {
             image.to_rgb32f().into_raw()
         };
         let mask = match &frame.mask {
-            Some(path) => read_png(path, &expect, "fg_mask_path", "mask")?
+            Some(path) if path.exists() => read_png(path, &expect, "fg_mask_path", "mask")?
                 .to_luma32f()
                 .into_raw(),
+            Some(path) => {
+                if !self
+                    .mask_warned
+                    .swap(true, std::sync::atomic::Ordering::Relaxed)
+                {
+                    eprintln!(
+                        "{json}: frames[{index}].fg_mask_path {} does not exist; frames \
+                         without a mask file use no mask (reported once)",
+                        path.display()
+                    );
+                }
+                vec![1.0; w as usize * h as usize]
+            }
             None => vec![1.0; w as usize * h as usize],
         };
         let cond = self.conditioning(index)?;
@@ -260,7 +302,7 @@ impl HeadDataset {
         {
             return Ok(c.clone());
         }
-        let c = Arc::new(load_conditioning(&self.model, path)?);
+        let c = Arc::new(load_conditioning(&self.model, &self.identity, path)?);
         if let Some(cache) = &self.cache {
             lock(cache).insert(path.clone(), c.clone());
         }
@@ -275,48 +317,15 @@ fn lock(m: &Cache) -> std::sync::MutexGuard<'_, HashMap<PathBuf, Arc<Conditionin
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
-/// Reads a timestep's FLAME parameters and eta, and poses the model.
-fn load_conditioning(model: &HeadModel, path: &Path) -> Result<Conditioning> {
+/// Reads a timestep's FLAME parameters and eta, and poses the model with the subject's
+/// `identity` (already fitted to the model).
+fn load_conditioning(model: &HeadModel, identity: &Identity, path: &Path) -> Result<Conditioning> {
     let what = path.display().to_string();
-    let pose = HeadPose::load_npz(path)?;
-    check_subject(model, &pose.shape, pose.static_offset.as_deref(), &what)?;
+    let mut pose = HeadPose::load_npz(path)?;
+    pose.shape.clone_from(&identity.shape);
+    pose.static_offset.clone_from(&identity.static_offset);
     let eta = vhap::load_eta(path)?;
     pose_conditioning(model, pose, eta, &what)
-}
-
-/// Fails, naming `what`, when a subject's shape coefficients or static offsets do not fit
-/// `model` (more coefficients than it has, or an offset count other than its vertices').
-pub fn check_subject(
-    model: &HeadModel,
-    shape: &[f32],
-    static_offset: Option<&[[f32; 3]]>,
-    what: &str,
-) -> Result<()> {
-    if shape.len() > model.num_shape {
-        return Err(Error::invalid(
-            what,
-            "shape",
-            format!(
-                "{} coefficients, the model has {}",
-                shape.len(),
-                model.num_shape
-            ),
-        ));
-    }
-    if let Some(o) = static_offset
-        && o.len() != model.num_vertices()
-    {
-        return Err(Error::invalid(
-            what,
-            "static_offset",
-            format!(
-                "{} offsets, the model has {} vertices",
-                o.len(),
-                model.num_vertices()
-            ),
-        ));
-    }
-    Ok(())
 }
 
 /// The conditioning of FLAME parameters `pose` with `eta` (128 values): expression

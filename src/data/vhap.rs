@@ -1,11 +1,30 @@
-//! VHAP's NeRSemble export for GaussianAvatars: `transforms_{train,val,test}.json`.
+//! VHAP's NeRSemble export for GaussianAvatars: `transforms_{train,val,test}.json`, read as
+//! VHAP writes them and GaussianAvatars reads them.
 //!
 //! Top level: `cx, cy, fl_x, fl_y, h, w` (defaults for every frame), optional
 //! `camera_angle_x/y`, `timestep_indices`, `camera_indices`, and `frames`. Per frame:
 //! `timestep_index`, `camera_index`, `file_path`, optional `fg_mask_path` and
 //! `flame_param_path`, `transform_matrix` (camera-to-world, OpenGL axes: x right, y up,
-//! z backward) and optional per-frame `cx, cy, fl_x, fl_y, h, w`. Paths are relative to the
-//! JSON's folder; combined multi-sequence sets use `../<seq>/...`, which is kept as is.
+//! z backward), optional per-frame `cx, cy, fl_x, fl_y, h, w, camera_angle_x` (they override
+//! the top level) and VHAP's `camera_id`, `timestep_id` (written, ignored on read). Paths are
+//! relative to the JSON's folder; combined multi-sequence sets use `../<seq>/...`, which is
+//! kept as is.
+//!
+//! # Conventions (checked against the peers' code, see the tests)
+//! - **Principal point.** VHAP exports with `camera_convention_conversion = "opencv->opengl"`
+//!   (`vhap/config/base.py`, `DataConfig`), whose `convert_camera_convention`
+//!   (`vhap/util/camera.py`) flips the camera's y and z axes *and* stores
+//!   `cy = h - cy_opencv`. The reader turns it back (`cy_opencv = h - cy`) and the writer
+//!   stores `h - cy`; `cx` is unchanged. Image coordinates are continuous with pixel `(i, j)`
+//!   centred at `(i + 0.5, j + 0.5)`, as VHAP's `projection_from_intrinsics` maps them.
+//! - **Intrinsics without `fl_x`.** GaussianAvatars' `readCamerasFromTransforms`
+//!   (`scene/dataset_readers.py`) needs only `camera_angle_x` (per frame, else top level) and
+//!   takes the same focal length for y and the principal point at the image centre; so does
+//!   this reader when `fl_x` is absent. Without `w`/`h` the image's own size is used.
+//! - **`file_path`** may omit `.png`: as GaussianAvatars does, `.png` is appended when the
+//!   path does not contain it.
+//! - Images with alpha are composited on white and masks are optional (see
+//!   [`crate::data::dataset`]).
 //!
 //! # The eta side file
 //! The paper's image-derived expression embedding (eta, 128 values) is not part of VHAP's
@@ -20,14 +39,38 @@ use serde::Deserialize;
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 
+/// Intrinsics as VHAP writes them: at the top level (defaults for every frame) and per
+/// frame (overriding the top level).
+#[derive(Clone, Copy, Debug, Default, Deserialize)]
+struct Intrinsics {
+    cx: Option<f32>,
+    cy: Option<f32>,
+    fl_x: Option<f32>,
+    fl_y: Option<f32>,
+    h: Option<u32>,
+    w: Option<u32>,
+    camera_angle_x: Option<f32>,
+}
+
+impl Intrinsics {
+    /// Each value of `self`, else `top`'s.
+    fn or(self, top: Intrinsics) -> Intrinsics {
+        Intrinsics {
+            cx: self.cx.or(top.cx),
+            cy: self.cy.or(top.cy),
+            fl_x: self.fl_x.or(top.fl_x),
+            fl_y: self.fl_y.or(top.fl_y),
+            h: self.h.or(top.h),
+            w: self.w.or(top.w),
+            camera_angle_x: self.camera_angle_x.or(top.camera_angle_x),
+        }
+    }
+}
+
 #[derive(Debug, Deserialize)]
 struct TransformsJson {
-    cx: f32,
-    cy: f32,
-    fl_x: f32,
-    fl_y: f32,
-    h: u32,
-    w: u32,
+    #[serde(flatten)]
+    intrinsics: Intrinsics,
     frames: Vec<FrameJson>,
 }
 
@@ -39,12 +82,8 @@ struct FrameJson {
     fg_mask_path: Option<String>,
     flame_param_path: Option<String>,
     transform_matrix: [[f32; 4]; 4],
-    cx: Option<f32>,
-    cy: Option<f32>,
-    fl_x: Option<f32>,
-    fl_y: Option<f32>,
-    h: Option<u32>,
-    w: Option<u32>,
+    #[serde(flatten)]
+    intrinsics: Intrinsics,
 }
 
 /// One frame of a VHAP export: which timestep and camera, where its files are, and its
@@ -140,7 +179,8 @@ pub struct FrameRecord {
 }
 
 /// Writes a `transforms_*.json` in VHAP's layout (top-level intrinsics from the first
-/// frame, every frame with its own too), through a temporary file.
+/// frame, every frame with its own too; `cy` in VHAP's flipped convention, see the module
+/// docs; `camera_id` and `timestep_id` as strings), through a temporary file.
 pub fn save_transforms(path: &Path, frames: &[FrameRecord]) -> Result<()> {
     let what = path.display().to_string();
     let Some(first) = frames.first() else {
@@ -164,14 +204,16 @@ pub fn save_transforms(path: &Path, frames: &[FrameRecord]) -> Result<()> {
                 "file_path": f.file_path,
                 "fg_mask_path": f.fg_mask_path,
                 "flame_param_path": f.flame_param_path,
+                "camera_id": format!("{:02}", f.camera_index),
+                "timestep_id": format!("frame_{:05}", f.timestep),
                 "transform_matrix": opengl_camera_to_world(&k.world_to_camera),
-                "cx": k.cx, "cy": k.cy, "fl_x": k.fx, "fl_y": k.fy, "h": k.height, "w": k.width,
+                "cx": k.cx, "cy": vhap_cy(k), "fl_x": k.fx, "fl_y": k.fy, "h": k.height, "w": k.width,
                 "camera_angle_x": angle(k.fx, k.width), "camera_angle_y": angle(k.fy, k.height),
             })
         })
         .collect();
     let doc = serde_json::json!({
-        "cx": c.cx, "cy": c.cy, "fl_x": c.fx, "fl_y": c.fy, "h": c.height, "w": c.width,
+        "cx": c.cx, "cy": vhap_cy(c), "fl_x": c.fx, "fl_y": c.fy, "h": c.height, "w": c.width,
         "camera_angle_x": angle(c.fx, c.width), "camera_angle_y": angle(c.fy, c.height),
         "timestep_indices": timesteps,
         "camera_indices": cameras,
@@ -184,7 +226,22 @@ pub fn save_transforms(path: &Path, frames: &[FrameRecord]) -> Result<()> {
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
-/// Reads a `transforms_*.json`.
+/// VHAP's stored `cy` of a camera: `h - cy` (`convert_camera_convention`, "opencv->opengl").
+fn vhap_cy(c: &Camera) -> f32 {
+    c.height as f32 - c.cy
+}
+
+/// The image a frame's `file_path` names: relative to `dir`, with `.png` appended when the
+/// path does not contain it (GaussianAvatars' `readCamerasFromTransforms`).
+fn image_path(dir: &Path, file_path: &str) -> PathBuf {
+    if file_path.contains(".png") {
+        dir.join(file_path)
+    } else {
+        dir.join(format!("{file_path}.png"))
+    }
+}
+
+/// Reads a `transforms_*.json` (see the module docs for the conventions).
 pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
     let what = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
@@ -198,22 +255,69 @@ pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
         .enumerate()
         .map(|(i, f)| {
             let field = |name: &str| format!("frames[{i}].{name}");
-            let camera = Camera {
-                width: f.w.unwrap_or(json.w),
-                height: f.h.unwrap_or(json.h),
-                fx: f.fl_x.unwrap_or(json.fl_x),
-                fy: f.fl_y.unwrap_or(json.fl_y),
-                cx: f.cx.unwrap_or(json.cx),
-                cy: f.cy.unwrap_or(json.cy),
-                world_to_camera: opencv_world_to_camera(&f.transform_matrix),
+            let image = image_path(dir, &f.file_path);
+            let k = f.intrinsics.or(json.intrinsics);
+            let (width, height) = match (k.w, k.h) {
+                (Some(w), Some(h)) => (w, h),
+                // GaussianAvatars reads the size from the image when the JSON has none.
+                _ => image::image_dimensions(&image).map_err(|e| {
+                    Error::invalid(
+                        &what,
+                        field("w/h"),
+                        format!(
+                            "no image size in the JSON and {} gives none: {e}",
+                            image.display()
+                        ),
+                    )
+                })?,
             };
-            if camera.width == 0 || camera.height == 0 {
+            if width == 0 || height == 0 {
                 return Err(Error::invalid(
                     &what,
                     field("w/h"),
                     "image size must be positive",
                 ));
             }
+            let fx = match (k.fl_x, k.camera_angle_x) {
+                (Some(fx), _) => fx,
+                (None, Some(angle)) => {
+                    if !(angle.is_finite() && angle > 0.0 && angle < std::f32::consts::PI) {
+                        return Err(Error::invalid(
+                            &what,
+                            field("camera_angle_x"),
+                            format!("{angle} is not a field of view in (0, pi)"),
+                        ));
+                    }
+                    0.5 * width as f32 / (0.5 * angle).tan()
+                }
+                (None, None) => {
+                    return Err(Error::invalid(
+                        &what,
+                        field("fl_x"),
+                        "missing, and no camera_angle_x to derive it from",
+                    ));
+                }
+            };
+            let fy = k.fl_y.unwrap_or(fx);
+            let cx = k.cx.unwrap_or(0.5 * width as f32);
+            let cy = match k.cy {
+                Some(stored) => height as f32 - stored,
+                None => 0.5 * height as f32,
+            };
+            for (name, v) in [("cx", cx), ("cy", cy)] {
+                if !v.is_finite() {
+                    return Err(Error::invalid(&what, field(name), "not finite"));
+                }
+            }
+            let camera = Camera {
+                width,
+                height,
+                fx,
+                fy,
+                cx,
+                cy,
+                world_to_camera: opencv_world_to_camera(&f.transform_matrix),
+            };
             for (name, v) in [("fl_x", camera.fx), ("fl_y", camera.fy)] {
                 if !(v.is_finite() && v > 0.0) {
                     return Err(Error::invalid(
@@ -241,7 +345,7 @@ pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
             Ok(VhapFrame {
                 timestep: f.timestep_index,
                 camera_index: f.camera_index,
-                image: dir.join(&f.file_path),
+                image,
                 mask: f.fg_mask_path.map(|p| dir.join(p)),
                 flame_param: f.flame_param_path.map(|p| dir.join(p)),
                 camera,
@@ -276,7 +380,7 @@ mod tests {
             fx: 40.0,
             fy: 41.0,
             cx: 10.0,
-            cy: 15.0,
+            cy: 12.0,
             world_to_camera: w2c,
         };
         let d = dir("save");
@@ -290,12 +394,22 @@ mod tests {
             camera,
         };
         save_transforms(&p, &[rec]).expect("save");
+        // On disk in VHAP's convention (`vhap/util/camera.py`, `convert_camera_convention`,
+        // "opencv->opengl"): cy = h - cy_opencv = 30 - 12; cx unchanged; camera_id and
+        // timestep_id as VHAP's export writes them (strings).
+        let raw: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).expect("read")).expect("json");
+        assert_eq!(raw["cy"], serde_json::json!(18.0));
+        assert_eq!(raw["frames"][0]["cy"], serde_json::json!(18.0));
+        assert_eq!(raw["frames"][0]["cx"], serde_json::json!(10.0));
+        assert!(raw["frames"][0]["camera_id"].is_string());
+        assert_eq!(raw["frames"][0]["timestep_id"], "frame_00003");
         let frames = load_transforms(&p).expect("load");
         assert_eq!(frames.len(), 1);
         let f = &frames[0];
         assert_eq!((f.timestep, f.camera_index), (3, 5));
         assert!(f.image.ends_with("../seq/images/00003_05.png"));
-        assert_eq!((f.camera.fx, f.camera.cy, f.camera.width), (40.0, 15.0, 20));
+        assert_eq!((f.camera.fx, f.camera.cy, f.camera.width), (40.0, 12.0, 20));
         for (row, want) in f.camera.world_to_camera.iter().zip(&w2c) {
             for (a, b) in row.iter().zip(want) {
                 assert!((a - b).abs() < 1e-6);
@@ -374,9 +488,24 @@ mod tests {
         let cases = [
             ("missing.json", None, "missing.json"),
             (
-                "no_cx.json",
-                Some(JSON.replacen("\"cx\": 275.0, \"cy\"", "\"cy\"", 1)),
-                "cx",
+                "no_focal.json",
+                Some(
+                    r#"{"w": 10, "h": 10, "frames": [{"timestep_index": 0, "camera_index": 0,
+                        "file_path": "a.png",
+                        "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,2],[0,0,0,1]]}]}"#
+                        .to_string(),
+                ),
+                "frames[0].fl_x",
+            ),
+            (
+                "no_size.json",
+                Some(
+                    r#"{"camera_angle_x": 0.5, "frames": [{"timestep_index": 0,
+                        "camera_index": 0, "file_path": "absent",
+                        "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,2],[0,0,0,1]]}]}"#
+                        .to_string(),
+                ),
+                "frames[0].w/h",
             ),
             (
                 "trunc.json",

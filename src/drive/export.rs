@@ -4,7 +4,9 @@
 //! Per Gaussian: the world-space mean; `f_dc = (rgb - 0.5) / C0` (SH degree 0, so a viewer's
 //! `max(0.5 + C0 f_dc, 0)` gives the avatar's colour back); the opacity's logit; and log
 //! scales and a rotation from the eigen-decomposition `Σ = R diag(λ) Rᵀ` (cyclic Jacobi in
-//! float64; `R` made a proper rotation, `scale = sqrt(λ)`).
+//! float64; `R` made a proper rotation, `scale = sqrt(λ)`). For loaders that insist on a
+//! higher SH degree, [`PlyGaussians::pad_sh_degree`] adds zero `f_rest_*` coefficients (the
+//! same colours).
 //!
 //! Two things a PLY cannot hold exactly are clamped and counted in [`ExportStats`]: colour
 //! channels below 0 (the method's colours have no activation; every 3DGS viewer clamps them
@@ -215,5 +217,53 @@ mod tests {
             ..g
         };
         assert!(to_ply(&bad).is_err());
+    }
+
+    /// `export ply --sh-degree 3`: 45 `f_rest_*` properties (3DGS's `GaussianModel.save_ply`
+    /// order, `_features_rest.transpose(1, 2).flatten(start_dim=1)`: channel-major), all zero,
+    /// between `f_dc_2` and `opacity`; the file reads back at degree 3 with everything else
+    /// unchanged.
+    #[test]
+    fn degree_3_export_pads_zero_f_rest_and_reads_back() {
+        use crate::splat::ply;
+        let g = HostGaussians {
+            means: &[0.0, 0.0, 1.0, 1.0, 2.0, 3.0],
+            cov6: &[
+                1.0, 0.2, 0.0, 2.0, 0.1, 0.5, 1e-4, 0.0, 0.0, 4e-4, 0.0, 9e-4,
+            ],
+            colors: &[0.5, 1.0, 0.25, 0.1, 0.3, 0.9],
+            opacities: &[0.5, 0.9],
+        };
+        let (deg0, _) = to_ply(&g).expect("valid");
+        let mut deg3 = deg0.clone();
+        deg3.pad_sh_degree(3).expect("pad");
+        let dir = std::env::temp_dir().join(format!("texavatars-exp3-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("00000.ply");
+        ply::write(&p, &deg3).unwrap();
+        let (names, rows) = ply::raw_float_rows(&std::fs::read(&p).unwrap());
+        let rest: Vec<usize> = (0..names.len())
+            .filter(|&j| names[j].starts_with("f_rest_"))
+            .collect();
+        assert_eq!(rest.len(), 45);
+        let dc2 = names.iter().position(|n| n == "f_dc_2").unwrap();
+        for (i, &j) in rest.iter().enumerate() {
+            assert_eq!(
+                (j, names[j].as_str()),
+                (dc2 + 1 + i, format!("f_rest_{i}").as_str())
+            );
+        }
+        assert_eq!(names[dc2 + 46], "opacity");
+        assert!(rows.iter().all(|r| rest.iter().all(|&j| r[j] == 0.0)));
+        let back = ply::read(&p).unwrap();
+        assert_eq!(back, deg3);
+        assert_eq!(back.sh_degree, 3);
+        for i in 0..2 {
+            assert_eq!(&back.sh[48 * i..48 * i + 3], &deg0.sh[3 * i..3 * i + 3]);
+        }
+        assert_eq!(back.means, deg0.means);
+        assert_eq!(back.opacity_logits, deg0.opacity_logits);
+        assert_eq!(back.log_scales, deg0.log_scales);
+        assert_eq!(back.quats, deg0.quats);
     }
 }

@@ -7,7 +7,9 @@
 //!   `frames`). One motion frame per timestep, in the file's order, with the timestep's
 //!   cameras (for `--cameras dataset`). The subject is the dataset's own.
 //! - **FLAME parameters** (cross-reenactment): a VHAP export folder with `flame_param/`, a
-//!   folder of `.npz` files, or one `.npz`. Files in name order; the driver gives the
+//!   folder of `.npz` files, or one `.npz`. Files in name order; a file of T frames
+//!   (GaussianAvatars' `flame_param.npz`, VHAP's `tracked_flame_params_*.npz`, (T, ·) arrays)
+//!   gives T motion frames, a VHAP `flame_param` file one. The driver gives the
 //!   expression, the jaw, eye, neck and global rotations and the translation, the avatar's
 //!   subject ([`Identity`]) the shape and the static offsets, as GaussianAvatars' and the
 //!   paper's cross-identity reenactment do. A driver's eta side file (`eta/TTTTT.npy` next to
@@ -22,7 +24,8 @@ use std::sync::Arc;
 use serde::Deserialize;
 
 use crate::camera::Camera;
-use crate::data::dataset::{check_subject, pose_conditioning};
+pub use crate::data::Identity;
+use crate::data::dataset::pose_conditioning;
 use crate::data::vhap::{self, ETA_DIM};
 use crate::data::{Conditioning, HeadDataset};
 use crate::error::{Error, Result};
@@ -57,34 +60,6 @@ pub struct Motion {
     pub kind: MotionKind,
     pub source: PathBuf,
     pub frames: Vec<MotionFrame>,
-}
-
-/// The avatar's subject for cross-reenactment: shape coefficients and static offsets.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Identity {
-    pub shape: Vec<f32>,
-    pub static_offset: Option<Vec<[f32; 3]>>,
-}
-
-impl Identity {
-    /// The model's mean head (zero shape, no offsets): the subject of the synthetic
-    /// benchmark.
-    pub fn mean(model: &HeadModel) -> Self {
-        Identity {
-            shape: vec![0.0; model.num_shape],
-            static_offset: None,
-        }
-    }
-
-    /// The shape and static offsets of a VHAP `flame_param` file (e.g. the avatar's dataset's
-    /// `canonical_flame_param.npz`).
-    pub fn load(path: &Path) -> Result<Self> {
-        let p = HeadPose::load_npz(path)?;
-        Ok(Identity {
-            shape: p.shape,
-            static_offset: p.static_offset,
-        })
-    }
 }
 
 impl Motion {
@@ -193,16 +168,23 @@ impl Motion {
         } else {
             vec![path.to_path_buf()]
         };
-        check_identity(model, identity)?;
-        let frames = files
-            .iter()
-            .enumerate()
-            .map(|(t, f)| {
-                let pose = HeadPose::load_npz(f)?;
+        let identity = identity.fit(model)?;
+        let mut frames = Vec::new();
+        for f in &files {
+            let poses = HeadPose::load_npz_frames(f)?;
+            let what = f.display().to_string();
+            if poses.len() == 1 {
                 let eta = vhap::load_eta(f)?;
-                driven(t, pose, eta, model, identity, &f.display().to_string())
-            })
-            .collect::<Result<Vec<_>>>()?;
+                let pose = poses.into_iter().next().expect("one pose");
+                frames.push(driven(frames.len(), pose, eta, model, &identity, &what)?);
+            } else {
+                for (i, pose) in poses.into_iter().enumerate() {
+                    let what = format!("{what} (frame {i})");
+                    let eta = vec![0.0; ETA_DIM];
+                    frames.push(driven(frames.len(), pose, eta, model, &identity, &what)?);
+                }
+            }
+        }
         Ok(Motion {
             kind: MotionKind::Parameters,
             source: path.to_path_buf(),
@@ -219,12 +201,12 @@ impl Motion {
         identity: &Identity,
     ) -> Result<Self> {
         let what = path.display().to_string();
-        check_identity(model, identity)?;
+        let identity = identity.fit(model)?;
         let poses = curves.poses(model, meta, &what)?;
         let frames = poses
             .into_iter()
             .enumerate()
-            .map(|(t, pose)| driven(t, pose, vec![0.0; ETA_DIM], model, identity, &what))
+            .map(|(t, pose)| driven(t, pose, vec![0.0; ETA_DIM], model, &identity, &what))
             .collect::<Result<Vec<_>>>()?;
         Ok(Motion {
             kind: MotionKind::Curves,
@@ -268,15 +250,6 @@ fn driven(
         conditioning: Arc::new(pose_conditioning(model, pose, eta, what)?),
         cameras: Vec::new(),
     })
-}
-
-fn check_identity(model: &HeadModel, identity: &Identity) -> Result<()> {
-    check_subject(
-        model,
-        &identity.shape,
-        identity.static_offset.as_deref(),
-        "identity",
-    )
 }
 
 /// A keyframed motion (JSON):

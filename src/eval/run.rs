@@ -1,7 +1,11 @@
 //! `texavatars eval`: render a trained avatar on the evaluation splits and score it.
 //!
 //! Splits (method.md §7): `val` = novel view (the held-out camera on training frames),
-//! `test` = novel expression (the held-out sequence), `free` = the FREE sequence. Writes
+//! `test` = novel expression (the held-out sequence), `free` = the FREE sequence; plus any
+//! other VHAP export as an extra split (`--split NAME=PATH/transforms.json`: VHAP writes a
+//! FREE sequence as an export folder of its own). Every split is posed with the avatar's
+//! subject (`RUN/canonical_flame_param.npz`, written by `train`; for runs without it, each
+//! export's own, see [`crate::data::identity`]). Writes
 //! `metrics.json` (means per split and every image's scores), `table.md` (the paper's
 //! layout) and `images/<split>/TTTTT_CC.png` panels (ground truth | render | error).
 
@@ -13,7 +17,8 @@ use std::time::Instant;
 use burn::module::Module;
 use serde::Serialize;
 
-use crate::data::{HeadBatcher, HeadDataset, Split};
+use crate::data::identity::CANONICAL;
+use crate::data::{HeadBatcher, HeadDataset, Identity, Split};
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
@@ -33,6 +38,10 @@ pub struct EvalOptions {
     pub out: PathBuf,
     /// Splits to evaluate (those without a transforms file are skipped with a message).
     pub splits: Vec<Split>,
+    /// Extra splits: a name and a `transforms*.json` of any VHAP export of the subject.
+    pub extra: Vec<(String, PathBuf)>,
+    /// The head model the avatar was trained with; default [`head_for`] `data`.
+    pub head: Option<PathBuf>,
     /// Score LPIPS too (needs `texavatars weights install`).
     pub lpips: bool,
     /// Evaluate every `stride`-th frame of each split (1 = all).
@@ -112,27 +121,54 @@ fn spread(n: usize, count: usize) -> Vec<usize> {
 pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<EvalReport> {
     let start = Instant::now();
     let device = opts.backend.device();
-    let head = head_for(&opts.data)?;
+    let head = match &opts.head {
+        Some(p) => HeadAsset::load(p, None)?,
+        None => head_for(&opts.data)?,
+    };
     let avatar = load_avatar(&opts.run, &head, &device)?;
-    let scorer = Scorer::new(&device, opts.lpips)?;
-    let model = Arc::new(head.model.clone());
-    let mut tally = Tally::default();
-    let mut images = Vec::new();
-    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    let subject = opts.run.join(CANONICAL);
+    let identity = if subject.is_file() {
+        Some(Identity::load(&subject)?)
+    } else {
+        None
+    };
+    let mut splits: Vec<(String, PathBuf)> = Vec::new();
     for &split in &opts.splits {
-        if !opts.data.join(split.file_name()).exists() {
+        let path = opts.data.join(split.file_name());
+        if path.exists() {
+            splits.push((split.name().to_string(), path));
+        } else {
             progress(&format!(
                 "{split}: no {} in {}, skipped",
                 split.file_name(),
                 opts.data.display()
             ));
-            continue;
         }
+    }
+    for (name, path) in &opts.extra {
+        if splits.iter().any(|(n, _)| n == name) {
+            return Err(Error::invalid(
+                "eval",
+                "--split",
+                format!("{name:?} is evaluated twice; give each split its own name"),
+            ));
+        }
+        splits.push((name.clone(), path.clone()));
+    }
+    let scorer = Scorer::new(&device, opts.lpips)?;
+    let model = Arc::new(head.model.clone());
+    let mut tally = Tally::default();
+    let mut images = Vec::new();
+    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    for (split, path) in &splits {
         let t0 = Instant::now();
-        let ds = HeadDataset::open(&opts.data, split, model.clone())?;
+        let mut ds = HeadDataset::from_transforms(path, model.clone())?;
+        if let Some(id) = &identity {
+            ds = ds.with_identity(id)?;
+        }
         let indices: Vec<usize> = (0..ds.len()).step_by(opts.stride.max(1)).collect();
         let panel_at = spread(indices.len(), opts.panels);
-        let dir = opts.out.join("images").join(split.name());
+        let dir = opts.out.join("images").join(split);
         if !panel_at.is_empty() {
             std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
         }
@@ -151,14 +187,14 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
                 io::image::write_png(&dir.join(format!("{t:05}_{c:02}.png")), w * 3, h, &p)?;
             }
             images.push(ImageScore {
-                split: split.name().to_string(),
+                split: split.clone(),
                 timestep: t,
                 camera: c,
                 scores,
             });
         }
         let m = tally.means();
-        if let Some(m) = m.get(split.name()) {
+        if let Some(m) = m.get(split.as_str()) {
             progress(&format!(
                 "{split}: {} images in {:.1} s: PSNR {:.2} dB, SSIM {:.4}{}",
                 m.images,

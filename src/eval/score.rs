@@ -10,7 +10,6 @@ use std::collections::BTreeMap;
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::Serialize;
 
-use crate::data::Split;
 use crate::error::{Error, Result};
 use crate::metrics::{self, Lpips, Net};
 
@@ -123,9 +122,10 @@ type Sums = (usize, f64, f64, [f64; 3], [usize; 3]);
 pub const PSNR_CAP: f64 = 100.0;
 
 impl Tally {
-    /// Adds one image's scores to `split`.
-    pub fn add(&mut self, split: Split, s: &Scores) {
-        let e = self.sums.entry(split.name().to_string()).or_default();
+    /// Adds one image's scores to the split named `split` (a [`crate::data::Split`]'s name or an extra
+    /// split's).
+    pub fn add(&mut self, split: &str, s: &Scores) {
+        let e = self.sums.entry(split.to_string()).or_default();
         e.0 += 1;
         e.1 += if s.psnr.is_finite() { s.psnr } else { PSNR_CAP };
         e.2 += s.ssim;
@@ -186,6 +186,19 @@ pub fn paper_table(means: &BTreeMap<String, Means>) -> String {
             m.ssim, m.psnr, m.images, paper.0, paper.1, paper.2
         ));
     }
+    // Extra splits (`eval --split NAME=PATH`) have no paper figure.
+    for (key, m) in means {
+        if rows.iter().any(|r| r.1 == key) {
+            continue;
+        }
+        let lp = m
+            .lpips_alex
+            .map_or("n/a".to_string(), |v| format!("{v:.3}"));
+        s.push_str(&format!(
+            "| {key} | {lp} | {:.3} | {:.2} | {} | |\n",
+            m.ssim, m.psnr, m.images
+        ));
+    }
     s
 }
 
@@ -228,9 +241,9 @@ mod tests {
             lpips_alex: Some(0.1),
             ..Default::default()
         };
-        t.add(Split::Test, &s(20.0, 0.8));
-        t.add(Split::Test, &s(30.0, 0.9));
-        t.add(Split::Val, &s(f64::INFINITY, 1.0));
+        t.add("test", &s(20.0, 0.8));
+        t.add("test", &s(30.0, 0.9));
+        t.add("val", &s(f64::INFINITY, 1.0));
         let m = t.means();
         assert_eq!(m["test"].images, 2);
         assert!((m["test"].psnr - 25.0).abs() < 1e-12);

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use crate::error::{Error, Result};
 use crate::head::meta::HeadMeta;
 use crate::head::model::HeadModel;
-use crate::head::teeth::{LipRings, add_teeth};
+use crate::head::teeth::{LOWER_RINGS, LipRings, UPPER_RINGS, add_teeth};
 use crate::mesh::obj::UvMesh;
 
 const DEFAULT_NPZ: &[u8] = include_bytes!("default/head.npz");
@@ -50,21 +50,22 @@ impl HeadAsset {
         )
     }
 
-    /// Adds GaussianAvatars' teeth (see [`crate::head::teeth`]); the new vertices join the
-    /// meta's `teeth_upper` / `teeth_lower` sets.
+    /// Adds VHAP's teeth (see [`crate::head::teeth`]); the new vertices join the meta's
+    /// `teeth_upper` (rings 0, 2, 4, 5) and `teeth_lower` (rings 1, 3, 6, 7) sets.
     pub fn with_teeth(&self, rings: &LipRings) -> Result<Self> {
         let v0 = self.model.num_vertices() as u32;
         let n = rings.upper.len() as u32;
         let (model, mesh) = add_teeth(&self.model, Some(&self.mesh), rings)?;
         let mut meta = self.meta.clone();
-        for (name, range) in [
-            ("teeth_upper", [v0, v0 + 4 * n]),
-            ("teeth_lower", [v0 + 4 * n, v0 + 8 * n]),
-        ] {
-            meta.vertex_sets
-                .entry(name.to_string())
-                .or_default()
-                .push(range);
+        for (name, set) in [("teeth_upper", UPPER_RINGS), ("teeth_lower", LOWER_RINGS)] {
+            let ranges = meta.vertex_sets.entry(name.to_string()).or_default();
+            for r in set.map(|r| r as u32) {
+                // Adjacent rings make one range.
+                match ranges.last_mut() {
+                    Some(last) if last[1] == v0 + r * n => last[1] += n,
+                    _ => ranges.push([v0 + r * n, v0 + (r + 1) * n]),
+                }
+            }
         }
         let mesh = mesh.ok_or_else(|| Error::invalid("teeth", "mesh", "no UV mesh produced"))?;
         Self::new(model, mesh, meta, "teeth")

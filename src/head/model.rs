@@ -258,7 +258,13 @@ impl HeadModel {
 
     /// Writes the model as an `.npz` in the layout [`load`](Self::load) reads.
     pub fn save(&self, path: &Path) -> Result<()> {
-        self.validate(&path.display().to_string())?;
+        self.to_npz(&path.display().to_string())?.write(path)
+    }
+
+    /// The model's arrays as [`save`](Self::save) writes them, for a caller that adds
+    /// arrays of its own before writing; `what` names the model in errors.
+    pub fn to_npz(&self, what: &str) -> Result<NpzOut> {
+        self.validate(what)?;
         let v = self.num_vertices();
         let j = self.num_joints();
         let k = self.num_shape + self.num_expr;
@@ -268,8 +274,8 @@ impl HeadModel {
             .map(|p| p.map_or(-1, |p| p as i64))
             .collect();
         parents.extend((0..j).map(|i| i as i64));
-        NpzOut::default()
-            .floats("v_template", &[v, 3], self.v_template.concat())
+        let mut out = NpzOut::default();
+        out.floats("v_template", &[v, 3], self.v_template.concat())
             .floats("shapedirs", &[v, 3, k], self.shapedirs.clone())
             .floats(
                 "posedirs",
@@ -284,7 +290,7 @@ impl HeadModel {
                 &[self.faces.len(), 3],
                 self.faces.iter().flatten().map(|&x| x as i64).collect(),
             )
-            .ints("num_shape", &[1], vec![self.num_shape as i64])
-            .write(path)
+            .ints("num_shape", &[1], vec![self.num_shape as i64]);
+        Ok(out)
     }
 }

@@ -1,7 +1,16 @@
-//! Per-frame FLAME parameters as VHAP exports them (`flame_param/TTTTT.npz`, also
-//! `canonical_flame_param.npz`): `translation` (1,3), `rotation` (1,3), `neck_pose` (1,3),
-//! `jaw_pose` (1,3), `eyes_pose` (1,6), `expr` (1,E), `shape` (S,) and optionally
-//! `static_offset` (1,V,3). `dynamic_offset` is accepted and ignored.
+//! FLAME parameters as VHAP and GaussianAvatars store them.
+//!
+//! - One frame (VHAP's export, `flame_param/TTTTT.npz`, also `canonical_flame_param.npz`;
+//!   `vhap/export_as_nerf_dataset.py`, `write_flame_param`): `translation` (1,3), `rotation`
+//!   (1,3), `neck_pose` (1,3), `jaw_pose` (1,3), `eyes_pose` (1,6), `expr` (1,E), `shape` (S,)
+//!   and optionally `static_offset` (1,V,3). [`HeadPose::load_npz`].
+//! - T frames (GaussianAvatars' `flame_param.npz` next to a trained `point_cloud.ply`,
+//!   `FlameGaussianModel.save_ply`; VHAP's `tracked_flame_params_*.npz`,
+//!   `GlobalTracker.save_result`): the same names with (T, ·) per-frame arrays, `shape` (S,)
+//!   and `static_offset` (1,V,3) once. [`HeadPose::load_npz_frames`].
+//!
+//! `dynamic_offset` and every other array (`timestep_id`, `focal_length`, `tex`, `lights`,
+//! ...) are ignored.
 
 use std::path::Path;
 
@@ -9,21 +18,49 @@ use crate::error::{Error, Result};
 use crate::head::lbs::HeadPose;
 use crate::io::npz::{Npz, NpzOut};
 
-fn fixed<const N: usize>(z: &mut Npz, what: &str, name: &str) -> Result<[f32; N]> {
+/// The `t` rows of `n` values of array `name`: shape (t, n), or (n,) when `t` is 1.
+fn rows(z: &mut Npz, what: &str, name: &str, t: usize, n: usize) -> Result<Vec<f32>> {
     let a = z.floats(name)?;
-    let data: [f32; N] = a.data.as_slice().try_into().map_err(|_| {
-        Error::invalid(
+    let ok = match a.shape.as_slice() {
+        [rows, cols] => *rows == t && *cols == n,
+        [cols] => t == 1 && *cols == n,
+        _ => false,
+    };
+    if !ok {
+        return Err(Error::invalid(
             what,
             name,
-            format!("shape {:?}, expected (1, {N})", a.shape),
-        )
-    })?;
-    Ok(data)
+            format!("shape {:?}, expected ({t}, {n})", a.shape),
+        ));
+    }
+    Ok(a.data)
+}
+
+fn fixed<const N: usize>(row: &[f32]) -> [f32; N] {
+    std::array::from_fn(|i| row[i])
 }
 
 impl HeadPose {
-    /// Reads a VHAP `flame_param` `.npz`.
+    /// Reads a one-frame VHAP `flame_param` `.npz`; a file of several frames is an error
+    /// (read it with [`HeadPose::load_npz_frames`]).
     pub fn load_npz(path: &Path) -> Result<Self> {
+        let mut frames = Self::load_npz_frames(path)?;
+        if frames.len() != 1 {
+            return Err(Error::invalid(
+                path.display().to_string(),
+                "expr",
+                format!(
+                    "{} frames; a dataset's flame_param file holds one",
+                    frames.len()
+                ),
+            ));
+        }
+        Ok(frames.remove(0))
+    }
+
+    /// Reads every frame of a FLAME parameter `.npz`: T from `expr` (T, E); every per-frame
+    /// array must have T rows; `shape` and `static_offset` are shared by all frames.
+    pub fn load_npz_frames(path: &Path) -> Result<Vec<Self>> {
         let what = path.display().to_string();
         let mut z = Npz::open(path)?;
         let static_offset = if z.has("static_offset") {
@@ -35,22 +72,59 @@ impl HeadPose {
                     format!("shape {:?}, expected (1, V, 3)", a.shape),
                 ));
             }
-            Some(a.data.chunks(3).map(|c| [c[0], c[1], c[2]]).collect())
+            Some(
+                a.data
+                    .chunks(3)
+                    .map(|c| [c[0], c[1], c[2]])
+                    .collect::<Vec<_>>(),
+            )
         } else {
             None
         };
-        let pose = HeadPose {
-            shape: z.floats("shape")?.data,
-            expr: z.floats("expr")?.data,
-            rotation: fixed(&mut z, &what, "rotation")?,
-            neck: fixed(&mut z, &what, "neck_pose")?,
-            jaw: fixed(&mut z, &what, "jaw_pose")?,
-            eyes: fixed(&mut z, &what, "eyes_pose")?,
-            translation: fixed(&mut z, &what, "translation")?,
-            static_offset,
+        let expr = z.floats("expr")?;
+        let (t, e) = match expr.shape.as_slice() {
+            [t, e] => (*t, *e),
+            [e] => (1, *e),
+            _ => {
+                return Err(Error::invalid(
+                    &what,
+                    "expr",
+                    format!("shape {:?}, expected (T, E)", expr.shape),
+                ));
+            }
         };
-        pose.check_finite(&what)?;
-        Ok(pose)
+        if t == 0 {
+            return Err(Error::invalid(&what, "expr", "no frames (T = 0)"));
+        }
+        let shape = z.floats("shape")?;
+        if shape.shape.len() > 1 && shape.shape[..shape.shape.len() - 1].iter().any(|&d| d != 1) {
+            return Err(Error::invalid(
+                &what,
+                "shape",
+                format!("shape {:?}, expected (S,) or (1, S)", shape.shape),
+            ));
+        }
+        let rotation = rows(&mut z, &what, "rotation", t, 3)?;
+        let neck = rows(&mut z, &what, "neck_pose", t, 3)?;
+        let jaw = rows(&mut z, &what, "jaw_pose", t, 3)?;
+        let eyes = rows(&mut z, &what, "eyes_pose", t, 6)?;
+        let translation = rows(&mut z, &what, "translation", t, 3)?;
+        (0..t)
+            .map(|i| {
+                let pose = HeadPose {
+                    shape: shape.data.clone(),
+                    expr: expr.data[i * e..(i + 1) * e].to_vec(),
+                    rotation: fixed(&rotation[i * 3..]),
+                    neck: fixed(&neck[i * 3..]),
+                    jaw: fixed(&jaw[i * 3..]),
+                    eyes: fixed(&eyes[i * 6..]),
+                    translation: fixed(&translation[i * 3..]),
+                    static_offset: static_offset.clone(),
+                };
+                pose.check_finite(&what)?;
+                Ok(pose)
+            })
+            .collect()
     }
 
     /// Writes the parameters in VHAP's layout.

@@ -5,6 +5,9 @@
 //! `opacity` (logit), `scale_0..2` (log), `rot_0..3` (quaternion w, x, y, z, not normalised).
 //! Other properties (`nx ny nz`, ...) are ignored. Binary little-endian and ASCII bodies are
 //! read; files are written binary little-endian.
+//!
+//! A file with a `binding_*` property is refused: it is a GaussianAvatars avatar, whose
+//! Gaussians are stored local to the FLAME triangle each is bound to, not a world-space scene.
 
 use std::io::Write;
 use std::path::Path;
@@ -42,6 +45,33 @@ impl PlyGaussians {
     /// SH coefficients per channel, K.
     pub fn sh_coeffs(&self) -> usize {
         (self.sh_degree + 1) * (self.sh_degree + 1)
+    }
+
+    /// Raises the SH degree to `degree` (at most 3), the new coefficients zero: the same
+    /// colours, for loaders that insist on a degree (many want 3, i.e. 45 `f_rest_*`).
+    /// Fails on a degree above 3 or below the current one (which would drop coefficients).
+    pub fn pad_sh_degree(&mut self, degree: usize) -> Result<()> {
+        if degree > 3 || degree < self.sh_degree {
+            return Err(Error::invalid(
+                "gaussians",
+                "sh_degree",
+                format!(
+                    "cannot pad SH degree {} to {degree} (0..=3, not below the current one)",
+                    self.sh_degree
+                ),
+            ));
+        }
+        let (k, k_new) = (self.sh_coeffs(), (degree + 1) * (degree + 1));
+        if k_new > k {
+            let mut sh = Vec::with_capacity(3 * k_new * self.len());
+            for g in self.sh.chunks(3 * k) {
+                sh.extend_from_slice(g);
+                sh.resize(sh.len() + 3 * (k_new - k), 0.0);
+            }
+            self.sh = sh;
+        }
+        self.sh_degree = degree;
+        Ok(())
     }
 
     /// Opacities after the sigmoid.
@@ -208,6 +238,16 @@ pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
     if elements_before_vertex {
         return Err(err("element", "the vertex element must come first".into()));
     }
+    if let Some(p) = props.iter().find(|p| p.name.starts_with("binding_")) {
+        return Err(err(
+            &p.name,
+            "this is a GaussianAvatars avatar (`point_cloud.ply`): each Gaussian's position, \
+             rotation and scale are local to the FLAME triangle it is bound to, and placing \
+             them needs the tracked mesh (`flame_param.npz`); it is not a world-space 3DGS \
+             scene"
+                .into(),
+        ));
+    }
     let format = format.ok_or_else(|| err("format", "missing".into()))?;
     let n = count.ok_or_else(|| err("element vertex", "missing".into()))?;
     let index = |name: &str| props.iter().position(|p| p.name == name);
@@ -272,22 +312,30 @@ fn read_rows(
     err: &dyn Fn(&str, String) -> Error,
 ) -> Result<Vec<f32>> {
     let np = props.len();
+    // Every value takes at least one byte of the body (binary: its size; ASCII: one
+    // character), so a count the body cannot hold is refused before anything is allocated.
+    let stride: usize = match format {
+        Format::BinaryLe => props.iter().map(|p| p.size).sum(),
+        Format::Ascii => np,
+    };
+    let need = stride.checked_mul(n).ok_or_else(|| {
+        err(
+            "element vertex",
+            format!("count {n} is too large for any file"),
+        )
+    })?;
+    if body.len() < need {
+        return Err(err(
+            "body",
+            format!(
+                "truncated: {n} vertices need at least {need} bytes, found {}",
+                body.len()
+            ),
+        ));
+    }
     let mut out = Vec::with_capacity(n * np);
     match format {
         Format::BinaryLe => {
-            let stride: usize = props.iter().map(|p| p.size).sum();
-            let need = stride
-                .checked_mul(n)
-                .ok_or_else(|| err("element vertex", "count too large".into()))?;
-            if body.len() < need {
-                return Err(err(
-                    "body",
-                    format!(
-                        "truncated: {n} vertices need {need} bytes, found {}",
-                        body.len()
-                    ),
-                ));
-            }
             for r in 0..n {
                 let mut off = r * stride;
                 for p in props {
@@ -365,6 +413,36 @@ pub fn write(path: &Path, g: &PlyGaussians) -> Result<()> {
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
+/// Test helper: the property names and the rows of a binary little-endian PLY whose vertex
+/// properties are all `float` (what [`write`] produces), read without [`parse`].
+#[cfg(test)]
+pub(crate) fn raw_float_rows(bytes: &[u8]) -> (Vec<String>, Vec<Vec<f32>>) {
+    let h = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap();
+    let header = std::str::from_utf8(&bytes[..h]).unwrap();
+    let mut n = 0;
+    let mut names = Vec::new();
+    for line in header.lines() {
+        let tok: Vec<&str> = line.split_whitespace().collect();
+        match tok.as_slice() {
+            ["element", "vertex", c] => n = c.parse().unwrap(),
+            ["property", "float", name] => names.push(name.to_string()),
+            ["property", ..] => panic!("not a float property: {line}"),
+            _ => {}
+        }
+    }
+    let body = &bytes[h + 11..];
+    assert_eq!(body.len(), 4 * n * names.len());
+    let values: Vec<f32> = body
+        .chunks(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let rows = values.chunks(names.len()).map(<[f32]>::to_vec).collect();
+    (names, rows)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -429,6 +507,157 @@ mod tests {
         assert!(e.contains("x.ply"), "{e}");
         let e = read(&dir.join("absent.ply")).unwrap_err().to_string();
         assert!(e.contains("absent.ply"), "{e}");
+    }
+
+    /// GaussianAvatars' `scene/gaussian_model.py`, `GaussianModel.construct_list_of_attributes`
+    /// and `save_ply`: the 3DGS attributes (here SH degree 0, so no `f_rest_*`) followed by
+    /// `binding_0` (the FLAME triangle of each Gaussian) when `self.binding` is set, every
+    /// attribute written as `f4`, i.e. `property float`. `FlameGaussianModel.save_ply`
+    /// (`scene/flame_gaussian_model.py`) puts `flame_param.npz` next to it.
+    #[test]
+    fn gaussian_avatars_ply_is_refused() {
+        let names = [
+            "x",
+            "y",
+            "z",
+            "nx",
+            "ny",
+            "nz",
+            "f_dc_0",
+            "f_dc_1",
+            "f_dc_2",
+            "opacity",
+            "scale_0",
+            "scale_1",
+            "scale_2",
+            "rot_0",
+            "rot_1",
+            "rot_2",
+            "rot_3",
+            "binding_0",
+        ];
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\n".to_vec();
+        for name in names {
+            bytes.extend_from_slice(format!("property float {name}\n").as_bytes());
+        }
+        bytes.extend_from_slice(b"end_header\n");
+        for face in [0.0f32, 7.0] {
+            for (j, name) in names.iter().enumerate() {
+                let v = match *name {
+                    "binding_0" => face,
+                    "rot_0" => 1.0,
+                    _ => j as f32 * 0.01,
+                };
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        let dir = std::env::temp_dir().join(format!("texavatars-plyga-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("point_cloud.ply");
+        std::fs::write(&p, &bytes).unwrap();
+        let e = read(&p).unwrap_err().to_string();
+        for needle in [
+            "point_cloud.ply",
+            "binding_0",
+            "GaussianAvatars",
+            "FLAME",
+            "world-space",
+        ] {
+            assert!(e.contains(needle), "`{needle}` not in: {e}");
+        }
+        // The same file without the binding is a plain (world-space) 3DGS scene.
+        let plain = String::from_utf8_lossy(&bytes[..bytes.len() - 2 * 4 * names.len()])
+            .replace("property float binding_0\n", "");
+        let mut plain = plain.into_bytes();
+        for _ in 0..2 {
+            for (j, name) in names[..names.len() - 1].iter().enumerate() {
+                let v = if *name == "rot_0" {
+                    1.0
+                } else {
+                    j as f32 * 0.01
+                };
+                plain.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        assert_eq!(parse(&plain, "plain.ply").unwrap().len(), 2);
+    }
+
+    /// A vertex count the body cannot hold is an error naming the file, never a panic or a
+    /// huge allocation ("capacity overflow").
+    #[test]
+    fn huge_vertex_counts_are_errors() {
+        let props = "property float x\nproperty float y\nproperty float z\n\
+            property float f_dc_0\nproperty float f_dc_1\nproperty float f_dc_2\n\
+            property float opacity\nproperty float scale_0\nproperty float scale_1\n\
+            property float scale_2\nproperty float rot_0\nproperty float rot_1\n\
+            property float rot_2\nproperty float rot_3\n";
+        let counts = [
+            u64::MAX.to_string(),
+            (1u64 << 62).to_string(),
+            (1u64 << 58).to_string(),
+            "1000000".into(),
+            "99999999999999999999999".into(),
+        ];
+        for format in ["binary_little_endian", "ascii"] {
+            for n in &counts {
+                let text = format!(
+                    "ply\nformat {format} 1.0\nelement vertex {n}\n{props}end_header\n\
+                     1 2 3 0.1 0.2 0.3 0 0 0 0 1 0 0 0\n"
+                );
+                let e = parse(text.as_bytes(), "big.ply").unwrap_err().to_string();
+                assert!(
+                    e.contains("big.ply") && (e.contains("vertex") || e.contains("truncated")),
+                    "{format} {n}: {e}"
+                );
+            }
+        }
+    }
+
+    /// 3DGS's `GaussianModel.save_ply` (the same in GaussianAvatars' `scene/gaussian_model.py`)
+    /// writes `f_rest` as `_features_rest.transpose(1, 2).flatten(start_dim=1)` with
+    /// `_features_rest` of shape [N, K - 1, 3]: channel-major, all R coefficients, then G,
+    /// then B.
+    #[test]
+    fn f_rest_is_channel_major_like_inria_save_ply() {
+        let dir = std::env::temp_dir().join(format!("texavatars-plycm-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let g = sample(2);
+        let p = dir.join("g.ply");
+        write(&p, &g).unwrap();
+        let (names, rows) = raw_float_rows(&std::fs::read(&p).unwrap());
+        let col = |name: &str| names.iter().position(|n| n == name).unwrap();
+        assert_eq!(col("f_rest_0"), col("f_dc_2") + 1);
+        assert_eq!(col("opacity"), col("f_rest_23") + 1);
+        let k = 9;
+        for (i, row) in rows.iter().enumerate() {
+            let sh = &g.sh[3 * k * i..3 * k * (i + 1)];
+            for ch in 0..3 {
+                assert_eq!(row[col(&format!("f_dc_{ch}"))], sh[ch]);
+                for coeff in 1..k {
+                    let j = ch * (k - 1) + coeff - 1;
+                    assert_eq!(row[col(&format!("f_rest_{j}"))], sh[3 * coeff + ch]);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn padding_keeps_coefficients_and_adds_zeros() {
+        let g1 = sample(1);
+        let mut g = g1.clone();
+        g.pad_sh_degree(3).unwrap();
+        assert_eq!((g.sh_degree, g.sh_coeffs()), (3, 16));
+        assert_eq!(g.sh.len(), 3 * 16 * g.len());
+        for i in 0..g.len() {
+            assert_eq!(&g.sh[48 * i..48 * i + 12], &g1.sh[12 * i..12 * i + 12]);
+            assert!(g.sh[48 * i + 12..48 * (i + 1)].iter().all(|&v| v == 0.0));
+        }
+        assert_eq!((&g.means, &g.quats), (&g1.means, &g1.quats));
+        let mut same = g1.clone();
+        same.pad_sh_degree(1).unwrap();
+        assert_eq!(same, g1);
+        assert!(g.clone().pad_sh_degree(4).is_err());
+        assert!(g.pad_sh_degree(2).is_err());
     }
 
     #[test]

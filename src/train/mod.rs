@@ -61,6 +61,9 @@ pub mod files {
     pub const AVATAR: &str = "avatar.bpk";
     /// burn's checkpoint folder.
     pub const CHECKPOINTS: &str = "checkpoint";
+    /// The subject's shape and static offsets the avatar was trained with (VHAP's canonical
+    /// parameter file).
+    pub const IDENTITY: &str = crate::data::identity::CANONICAL;
 }
 
 /// How to run [`train`].
@@ -298,6 +301,10 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
 
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     write(&out.join(files::CONFIG), &config.to_json())?;
+    // The subject the avatar is trained on, for eval and driving (crate::data::identity).
+    train_set
+        .identity()
+        .save(&head.model, &out.join(files::IDENTITY))?;
     write(
         &out.join(files::AVATAR_CONFIG),
         &(serde_json::to_string_pretty(&avatar_config).expect("serialises") + "\n"),
