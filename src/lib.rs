@@ -1,13 +1,23 @@
 //! texavatars: hybrid texel-3D Gaussian head avatars (TexAvatars, 3DV 2026) on burn.
 //!
-//! The modules follow the data flow: [`data`] (VHAP export, dataset) → [`head`]
-//! (FLAME-compatible model, skinning, the default head) → [`synth`] (the synthetic
-//! benchmark) → [`mesh`] (OBJ with UVs) → [`texel`] (UV layout maps, sample grid, per-face
-//! frames) → [`model`] (the networks: condition and camera to local texel attributes) →
-//! [`lift`] (local texel attributes to 3D Gaussians) → [`camera`] → [`splat`] (the
-//! differentiable Gaussian rasterizer) → [`metrics`] (losses and image metrics, with the
-//! pretrained VGG16 / AlexNet weights) → [`train`] (the objective and training through
-//! burn's learner).
+//! The modules follow the data flow:
+//!
+//! 1. Input: [`data`] (VHAP / GaussianAvatars exports as a burn dataset, one identity per
+//!    subject) → [`head`] (FLAME-compatible model, skinning, VHAP's teeth, the default head)
+//!    → [`synth`] (the synthetic benchmark, written in the same export format) → [`mesh`]
+//!    (OBJ with UVs) and [`camera`] (one pinhole convention).
+//! 2. The avatar: [`texel`] (UV layout maps, sample grid, per-face frames) → [`model`] (the
+//!    networks: condition and camera to local texel attributes) → [`lift`] (local texel
+//!    attributes to 3D Gaussians) → [`splat`] (the differentiable Gaussian rasterizer).
+//! 3. Learning and judging: [`metrics`] (losses and image metrics, with the pretrained VGG16
+//!    / AlexNet weights) → [`train`] (the objective and training through burn's learner) →
+//!    [`eval`] (the paper's evaluation protocol, tables, panels, curves).
+//! 4. Use: [`drive`] (motions, cameras, rendering, PLY export, frame-rate benchmark) and
+//!    [`demo`] (the whole pipeline as one command).
+//!
+//! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`device`] (backend
+//! choice), [`io`] (npy / npz / PNG / pickle files) and [`error`] (errors that name the file
+//! and field). The GPU kernels are the `texavatars-kernels` crate ([`kernels`]).
 
 pub mod camera;
 pub mod cli;

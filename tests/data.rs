@@ -4,6 +4,8 @@
 //! Round trip, batching, burn's data loader, and every malformed input named by file and
 //! field.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -24,43 +26,9 @@ const H: u32 = 6;
 const E: usize = 3;
 const V: usize = 6;
 
-/// Six vertices, five joints (as tests/head.rs), one shape and three expression directions.
+/// The shared tiny head with three expression directions.
 fn tiny() -> HeadModel {
-    let v_template = vec![
-        [0.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0],
-        [0.0, 2.0, 0.0],
-        [-1.0, 3.0, 0.0],
-        [1.0, 3.0, 0.0],
-        [0.0, 3.0, 0.0],
-    ];
-    let k = 1 + E;
-    let mut shapedirs = vec![0.0f32; V * 3 * k];
-    shapedirs[0] = 1.0; // shape: vertex 0 +x
-    shapedirs[(5 * 3 + 2) * k + 1] = 1.0; // expr 0: vertex 5 +z
-    shapedirs[(5 * 3) * k + 2] = 1.0; // expr 1: vertex 5 +x
-    shapedirs[(4 * 3 + 1) * k + 3] = 1.0; // expr 2: vertex 4 +y
-    let p = 36;
-    let mut posedirs = vec![0.0f32; V * 3 * p];
-    posedirs[(5 * 3 + 1) * p + 9 + 4] = 1.0;
-    let mut j_regressor = vec![0.0f32; 5 * V];
-    let mut weights = vec![0.0f32; V * 5];
-    for i in 0..5 {
-        j_regressor[i * V + i] = 1.0;
-        weights[i * 5 + i] = 1.0;
-    }
-    weights[5 * 5 + 2] = 1.0;
-    HeadModel {
-        v_template,
-        shapedirs,
-        num_shape: 1,
-        num_expr: E,
-        posedirs,
-        j_regressor,
-        weights,
-        parents: vec![None, Some(0), Some(1), Some(1), Some(1)],
-        faces: vec![[0, 1, 2], [2, 5, 3], [2, 5, 4]],
-    }
+    common::head::tiny_head(E)
 }
 
 /// Timestep 0: two expression coefficients (padded), a static offset, eta on disk.

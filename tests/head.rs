@@ -2,52 +2,17 @@
 //! joint regression, every joint's rotation, the kinematic chain, pose correctives,
 //! translation, static offsets; `.npz` round trips (both posedirs layouts); bad files.
 
+mod common;
+
 use texavatars::head::model::HeadModel;
 use texavatars::head::{HeadPose, lbs};
 use texavatars::io::npz::NpzOut;
 
 const FRAC_PI_2: f32 = std::f32::consts::FRAC_PI_2;
 
-/// Six vertices, five joints. Joint i sits at vertex i (identity regressor on the first
-/// five); vertex i is skinned to joint i, and vertex 5 (one unit above the jaw joint) to
-/// the jaw. One shape and one expression direction, and one pose corrective.
+/// The shared tiny head with one expression direction.
 fn tiny() -> HeadModel {
-    let v_template = vec![
-        [0.0, 0.0, 0.0],  // root
-        [0.0, 1.0, 0.0],  // neck
-        [0.0, 2.0, 0.0],  // jaw
-        [-1.0, 3.0, 0.0], // left eye
-        [1.0, 3.0, 0.0],  // right eye
-        [0.0, 3.0, 0.0],  // on the jaw
-    ];
-    let v = v_template.len();
-    let k = 2;
-    let mut shapedirs = vec![0.0f32; v * 3 * k];
-    // Shape: moves vertex 0 by +x. Expression: moves vertex 5 by +z.
-    shapedirs[0] = 1.0; // vertex 0, x, component 0
-    shapedirs[(5 * 3 + 2) * k + 1] = 1.0;
-    let p = 36;
-    let mut posedirs = vec![0.0f32; v * 3 * p];
-    // Vertex 5's y moves with the jaw's (R - I)[1][1] (pose feature index 9 + 4).
-    posedirs[(5 * 3 + 1) * p + 9 + 4] = 1.0;
-    let mut j_regressor = vec![0.0f32; 5 * v];
-    let mut weights = vec![0.0f32; v * 5];
-    for i in 0..5 {
-        j_regressor[i * v + i] = 1.0;
-        weights[i * 5 + i] = 1.0;
-    }
-    weights[5 * 5 + 2] = 1.0;
-    HeadModel {
-        v_template,
-        shapedirs,
-        num_shape: 1,
-        num_expr: 1,
-        posedirs,
-        j_regressor,
-        weights,
-        parents: vec![None, Some(0), Some(1), Some(1), Some(1)],
-        faces: vec![[0, 1, 2], [2, 5, 3], [2, 5, 4]],
-    }
+    common::head::tiny_head(1)
 }
 
 fn close(a: &[[f32; 3]], b: &[[f32; 3]]) {

@@ -43,7 +43,7 @@ pub struct ExportStats {
 ///
 /// # Shapes
 /// - `means`: [N, 3]; `cov6`: [N, 6] (xx, xy, xz, yy, yz, zz); `colors`: [N, 3];
-///   `opacities`: [N] (after the sigmoid)
+///   `opacities`: `[N]` (after the sigmoid)
 pub struct HostGaussians<'a> {
     pub means: &'a [f32],
     pub cov6: &'a [f32],

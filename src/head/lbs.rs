@@ -25,7 +25,7 @@ pub struct HeadPose {
     /// Left then right eye (axis-angle each).
     pub eyes: [f32; 6],
     pub translation: [f32; 3],
-    /// Per-vertex offsets added to the template, [V] (optional).
+    /// Per-vertex offsets added to the template, `[V]` (optional).
     pub static_offset: Option<Vec<[f32; 3]>>,
 }
 
@@ -199,7 +199,7 @@ pub fn joints(model: &HeadModel, pose: &HeadPose) -> Vec<[f32; 3]> {
         .collect()
 }
 
-/// Poses the model: returns the posed vertices [V].
+/// Poses the model: returns the posed vertices `[V]`.
 pub fn lbs(model: &HeadModel, pose: &HeadPose) -> Result<Vec<[f32; 3]>> {
     let what = "head pose";
     pose.check_finite(what)?;

@@ -9,7 +9,7 @@
 //! | `weights` | [V, J] | skinning weights |
 //! | `kintree_table` | [2, J] | row 0: parent of each joint (root: -1 or 2^32 - 1) |
 //! | `f` | [F, 3] | triangles |
-//! | `num_shape` (optional) | [] or [1] | S; absent: 300 when S + E = 400 (FLAME 2023) |
+//! | `num_shape` (optional) | `[]` or `[1]` | S; absent: 300 when S + E = 400 (FLAME 2023) |
 //!
 //! FLAME's joints are root (global), neck, jaw, left eye, right eye: pose vectors are
 //! `[global 3, neck 3, jaw 3, eyes 6]` in axis-angle.
@@ -29,7 +29,7 @@ pub const FLAME_SHAPE: usize = 300;
 /// # Shapes
 /// - `v_template`: [V, 3]; `shapedirs`: [V, 3, K] with K = `num_shape + num_expr`;
 ///   `posedirs`: [V, 3, 9 (J - 1)]; `j_regressor`: [J, V]; `weights`: [V, J];
-///   `parents`: [J] (`None` for the root); `faces`: [F, 3]
+///   `parents`: `[J]` (`None` for the root); `faces`: [F, 3]
 #[derive(Clone, Debug, PartialEq)]
 pub struct HeadModel {
     pub v_template: Vec<[f32; 3]>,

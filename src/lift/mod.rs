@@ -9,7 +9,7 @@
 //!
 //! Implementations, selected by backend through [`LiftBackend`]: the fused CPU code
 //! ([`cpu`], ndarray and flex), the CubeCL kernels ([`gpu`], wgpu), both with handwritten
-//! backward passes, and the reference in plain burn tensor ops ([`reference`], any backend,
+//! backward passes, and the reference in plain burn tensor ops ([`reference`](mod@reference), any backend,
 //! differentiated by burn's autodiff). All compute the same function; tests compare them in
 //! values and gradients.
 
@@ -133,7 +133,7 @@ pub struct LiftParams {
 ///
 /// # Shapes
 /// - `means`: [N, 3]; `cov6`: [N, 6] (xx, xy, xz, yy, yz, zz); `colors`: [N, 3];
-///   `opacities`: [N] (after the sigmoid)
+///   `opacities`: `[N]` (after the sigmoid)
 #[derive(Clone, Debug)]
 pub struct Lifted {
     pub means: Tensor<2>,

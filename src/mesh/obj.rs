@@ -14,9 +14,9 @@ use crate::error::{Error, Result};
 /// A triangle mesh with a UV layout. Positions and UVs have their own indices per corner.
 ///
 /// # Shapes
-/// - `positions`: [V] in file order
-/// - `uvs`: [T] in file order; OBJ convention, `v` points up
-/// - `faces`, `uv_faces`: [F] corner indices into `positions` and `uvs`
+/// - `positions`: `[V]` in file order
+/// - `uvs`: `[T]` in file order; OBJ convention, `v` points up
+/// - `faces`, `uv_faces`: `[F]` corner indices into `positions` and `uvs`
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct UvMesh {
     pub positions: Vec<[f32; 3]>,

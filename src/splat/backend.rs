@@ -38,7 +38,7 @@ pub struct SplatParams {
 /// - `means`: [N, 3] world-space centres
 /// - `cov6`: [N, 6] world-space covariances (xx, xy, xz, yy, yz, zz)
 /// - `colors`: [N, 3] RGB
-/// - `opacities`: [N] opacity after the sigmoid
+/// - `opacities`: `[N]` opacity after the sigmoid
 #[derive(ExtensionType, Debug, Clone)]
 pub struct SplatInputs<B: Backend> {
     pub means: FloatTensor<B>,
@@ -52,7 +52,7 @@ pub struct SplatInputs<B: Backend> {
 /// # Shapes
 /// - `out`: [H, W, 4] RGB and final transmittance
 /// - `projected`: [N, P] per-Gaussian projection (layout private to each implementation)
-/// - `gaussian_from_isect`: [M] (at least one element) the Gaussian of each tile intersection
+/// - `gaussian_from_isect`: `[M]` (at least one element) the Gaussian of each tile intersection
 /// - `tile_ranges`: [T, 2] `[start, end)` per tile
 /// - `last`: [H, W] one past the last composited intersection per pixel, tile-relative
 #[derive(ExtensionType, Debug, Clone)]

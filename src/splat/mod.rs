@@ -2,7 +2,7 @@
 //!
 //! Three implementations with one behaviour (conventions: `shared/fixtures/splat/README.md`,
 //! constants: [`constants`]):
-//! - [`reference`]: dense burn tensor ops on any backend, autodiff by burn (the oracle);
+//! - [`reference`](mod@reference): dense burn tensor ops on any backend, autodiff by burn (the oracle);
 //! - [`cpu`]: the tile renderer in multi-threaded Rust, serving the ndarray and flex backends;
 //! - [`gpu`]: the same tile algorithm as CubeCL kernels on burn's wgpu backend.
 //!
@@ -31,7 +31,7 @@ use crate::error::{Error, Result};
 /// - `means`: [N, 3] world-space centres
 /// - `cov6`: [N, 6] world-space covariance (xx, xy, xz, yy, yz, zz)
 /// - `colors`: [N, 3] RGB
-/// - `opacities`: [N] opacity after the sigmoid
+/// - `opacities`: `[N]` opacity after the sigmoid
 #[derive(Clone, Debug)]
 pub struct Gaussians {
     pub means: Tensor<2>,

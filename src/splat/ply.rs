@@ -23,7 +23,7 @@ pub struct PlyGaussians {
     pub sh: Vec<f32>,
     /// SH degree (0..=3).
     pub sh_degree: usize,
-    /// [N] opacity logits.
+    /// `[N]` opacity logits.
     pub opacity_logits: Vec<f32>,
     /// [N, 3] log scales.
     pub log_scales: Vec<f32>,

@@ -144,7 +144,7 @@ fn visible_order(
 /// Renders with dense tensor ops. Returns [H, W, 4]: RGB and final transmittance.
 ///
 /// # Shapes
-/// - `means`: [N, 3], `cov6`: [N, 6], `colors`: [N, 3], `opacities`: [N]
+/// - `means`: [N, 3], `cov6`: [N, 6], `colors`: [N, 3], `opacities`: `[N]`
 pub fn render(
     means: Tensor<2>,
     cov6: Tensor<2>,

@@ -155,7 +155,7 @@ pub fn face_frame_backward(kind: FrameKind, v: [Vec3; 3], dm: &Mat3) -> [Vec3; 3
 /// Per-face frames of the posed mesh.
 ///
 /// # Shapes
-/// - `faces`: [F]; `vertices`: [V]; returns [F]
+/// - `faces`: `[F]`; `vertices`: `[V]`; returns `[F]`
 pub fn face_frames(kind: FrameKind, faces: &[[u32; 3]], vertices: &[Vec3]) -> Vec<Mat3> {
     faces
         .iter()
@@ -167,7 +167,7 @@ pub fn face_frames(kind: FrameKind, faces: &[[u32; 3]], vertices: &[Vec3]) -> Ve
 /// (zero where no face covers it).
 ///
 /// # Shapes
-/// - `vertices`: [V]; returns [R * R]
+/// - `vertices`: `[V]`; returns [R * R]
 pub fn position_map(layout: &UvLayout, vertices: &[Vec3]) -> Vec<Vec3> {
     layout
         .face

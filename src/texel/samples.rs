@@ -18,12 +18,12 @@ pub const KEEP_VALIDITY: f32 = 0.99;
 /// ablation, the face each sample falls in.
 ///
 /// # Shapes
-/// - `grid_index`: [N] index `b * S + a` of the sample in the full grid
-/// - `uv`: [N]
+/// - `grid_index`: `[N]` index `b * S + a` of the sample in the full grid
+/// - `uv`: `[N]`
 /// - `taps`: [N, 4] texel indices (`j * R + i`) of the 4 neighbours: (i0, j0), (i0+1, j0),
 ///   (i0, j0+1), (i0+1, j0+1); taps outside the map have weight 0 and index 0
 /// - `weights`: [N, 4] bilinear weights
-/// - `face`, `bary`: [N] the face containing the sample's UV point (lowest index wins) and
+/// - `face`, `bary`: `[N]` the face containing the sample's UV point (lowest index wins) and
 ///   its barycentrics; where no face contains the point (kept samples at the layout's
 ///   border), the face of the heaviest valid tap with barycentrics extrapolated to the point
 #[derive(Clone, Debug, PartialEq)]

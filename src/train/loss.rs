@@ -60,7 +60,7 @@ impl Default for LossWeights {
 /// The objective and each of its terms, unweighted (`total` is the weighted sum).
 ///
 /// # Shapes
-/// - every field: [1]
+/// - every field: `[1]`
 #[derive(Clone, Debug)]
 pub struct LossTerms {
     /// The weighted sum that is minimised.
@@ -98,7 +98,7 @@ fn mean_all(x: Tensor<4>) -> Tensor<1> {
 /// L_pos = mean over texels of `relu(|mu^l| - threshold)`.
 ///
 /// # Shapes
-/// - returns [1]
+/// - returns `[1]`
 pub fn position_loss(maps: &LocalMaps, threshold: f64) -> Tensor<1> {
     let excess = channel_norm(maps.offset()).sub_scalar(threshold);
     mean_all(burn::tensor::activation::relu(excess))
@@ -107,7 +107,7 @@ pub fn position_loss(maps: &LocalMaps, threshold: f64) -> Tensor<1> {
 /// L_scale = mean over texels of `|relu(exp(s^l) - threshold)|`.
 ///
 /// # Shapes
-/// - returns [1]
+/// - returns `[1]`
 pub fn scale_loss(maps: &LocalMaps, threshold: f64) -> Tensor<1> {
     let excess = burn::tensor::activation::relu(maps.log_scale().exp().sub_scalar(threshold));
     mean_all(channel_norm(excess))

@@ -71,7 +71,7 @@ impl StepOutput {
     /// Gathers `terms` and the batch's mean PSNR.
     ///
     /// # Shapes
-    /// - `psnr`: [N]
+    /// - `psnr`: `[N]`
     pub fn new(terms: &LossTerms, psnr: Tensor<1>, batch_size: usize) -> Self {
         let zero = || terms.l1.clone().zeros_like();
         let mut values = vec![zero(); Term::COUNT];
@@ -127,7 +127,7 @@ impl burn::train::metric::Adaptor<TermsInput> for StepOutput {
 
 impl AvatarTraining {
     /// Forward pass and objective for one batch (any device; autodiff for training), with the
-    /// VGG term when `vgg` is given. Returns the terms and the PSNR per frame ([N]).
+    /// VGG term when `vgg` is given. Returns the terms and the PSNR per frame (`[N]`).
     pub fn losses(&self, item: &TrainBatch, vgg: Option<&VggPerceptual>) -> (LossTerms, Tensor<1>) {
         let out = self
             .avatar

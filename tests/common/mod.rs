@@ -1,6 +1,8 @@
 //! Shared test support: fixture scenes, random scenes, gradient comparisons.
 #![allow(dead_code)]
 
+pub mod head;
+
 use std::path::{Path, PathBuf};
 
 use burn::tensor::{Device, Tensor, TensorData};

@@ -347,7 +347,7 @@ fn scaled_rotation_frame_backward(v0: V3, v1: V3, v2: V3, dm: M3) -> Corners {
     }
 }
 
-/// Backward of [`face_frame`] given `dm = dL/dM`.
+/// Backward of [`face_frame()`] given `dm = dL/dM`.
 #[cube]
 pub fn face_frame_backward(
     v0: V3,
@@ -389,7 +389,7 @@ pub fn rotation(q: Q4) -> M3 {
     }
 }
 
-/// Backward of [`rotation`]: `dq` from `g = dL/dR`.
+/// Backward of [`rotation()`]: `dq` from `g = dL/dR`.
 #[cube]
 pub fn rotation_backward(q: Q4, g: M3) -> Q4 {
     let m = quat_norm(q);

@@ -3,7 +3,7 @@
 //! Stages (each a function below): [`project`](project::project) every Gaussian →
 //! [`bin`] the visible ones into 16x16 tiles, depth-ordered within a tile →
 //! [`rasterize`] each tile front to back (rayon, one task per tile) → on the way back,
-//! [`rasterize_backward`] each tile back to front into per-intersection gradient slots (no
+//! [`backward`] walks each tile back to front into per-intersection gradient slots (no
 //! atomics, deterministic) → sum the slots per Gaussian → [`project::project_backward`].
 
 pub mod lanes;
@@ -22,7 +22,7 @@ pub use project::{PixelBox, ProjCamera, Projection, Splat2d, Splat2dGrad};
 /// - `means`: [N, 3]
 /// - `cov6`: [N, 6] (xx, xy, xz, yy, yz, zz)
 /// - `colors`: [N, 3]
-/// - `opacities`: [N]
+/// - `opacities`: `[N]`
 #[derive(Clone, Copy, Debug)]
 pub struct Scene<'a> {
     pub means: &'a [f32],
@@ -67,9 +67,9 @@ pub struct Forward {
 /// Gaussians binned into tiles.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Bins {
-    /// [M]: the Gaussian of each tile intersection; tile-major, depth order within a tile.
+    /// `[M]`: the Gaussian of each tile intersection; tile-major, depth order within a tile.
     pub gaussian_from_isect: Vec<u32>,
-    /// [T]: `[start, end)` into `gaussian_from_isect` per tile (row-major tiles).
+    /// `[T]`: `[start, end)` into `gaussian_from_isect` per tile (row-major tiles).
     pub tile_ranges: Vec<[u32; 2]>,
 }
 
@@ -188,7 +188,7 @@ impl TileEllipse {
 /// Bins visible Gaussians into tiles: sorted by (depth, index), then, per band of tile rows
 /// in parallel, a stable counting sort by tile, so every tile lists its Gaussians front to
 /// back. A Gaussian whose box spans several tile rows and columns is only listed, row by
-/// row, in the tiles its ellipse reaches ([`TileEllipse::row_tiles`]; a tilted ellipse
+/// row, in the tiles its ellipse reaches (`TileEllipse::row_tiles`; a tilted ellipse
 /// leaves box corners empty); one whose box is a single row or column of tiles reaches all
 /// of them.
 pub fn bin(projections: &[Option<Projection>], cam: &ProjCamera) -> Bins {
