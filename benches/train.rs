@@ -1,6 +1,6 @@
 //! One training iteration (render, objective, backward, Adam step) of the whole avatar on the
-//! CPU (flex), batch 1, without the VGG term (on only for the last part of a run; see the
-//! README for its cost).
+//! CPU (flex), batch 1, without the VGG term (on only for the last part of a run; see
+//! docs/training.md for its cost).
 //!
 //! `cargo bench --bench train`; `TEXAVATARS_BENCH_CONFIG=cpu|paper` picks
 //! `configs/train_<name>.json` (default `cpu`). The images: the synthetic benchmark at 138 x 200

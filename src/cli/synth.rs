@@ -22,7 +22,7 @@ pub struct SynthArgs {
     #[arg(long)]
     pub head: Option<PathBuf>,
     /// Add GaussianAvatars' teeth to `--head` (its `.npz` must hold the lip rings
-    /// `lip_outside_ring_upper` and `lip_outside_ring_lower`; see the README).
+    /// `lip_outside_ring_upper` and `lip_outside_ring_lower`; see docs/captures.md).
     #[arg(long, requires = "head")]
     pub teeth: bool,
 }

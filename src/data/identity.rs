@@ -136,7 +136,7 @@ impl Identity {
                         "{} offsets, the model has {v} vertices: the data was tracked by VHAP \
                          with its teeth ({VHAP_TEETH_VERTICES} vertices more). Add them to the \
                          model with `texavatars head add-teeth --model MODEL.npz --out DIR` \
-                         (the .npz must hold FLAME's lip rings, see the README) and pass \
+                         (the .npz must hold FLAME's lip rings, see docs/captures.md) and pass \
                          `--head DIR/MODEL.npz`",
                         o.len()
                     ),

@@ -30,7 +30,7 @@
 //!   teeth follow the neck joint (1), lower teeth the jaw (2).
 //!
 //! The ring lists are FLAME vertex ids and are not shipped: a FLAME licensee stores them in
-//! the model `.npz` as `lip_outside_ring_upper` and `lip_outside_ring_lower` (README).
+//! the model `.npz` as `lip_outside_ring_upper` and `lip_outside_ring_lower` (`docs/captures.md`).
 //! `texavatars head add-teeth` writes a model with teeth and marks it with
 //! [`TEETH_MARKER`], so that teeth are never added twice.
 

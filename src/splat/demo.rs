@@ -1,4 +1,4 @@
-//! A small procedural scene for the README's first command: a head-like ellipsoid of
+//! A small procedural scene for `texavatars splat demo`: a head-like ellipsoid of
 //! Gaussians (skin, two eyes, brows, lips) seen by a NeRSemble-like frontal camera.
 //! Deterministic: the same seed gives the same file.
 
