@@ -14,12 +14,12 @@ use std::time::Instant;
 use crate::data::Split;
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
+use crate::eval::plot::{Figure, Series, line_plot};
 use crate::eval::run::{EvalOptions, evaluate};
-use crate::eval::{Series, line_plot};
 use crate::head::HeadAsset;
 use crate::metrics::weights;
 use crate::synth::{self, SynthConfig};
-use crate::train::{TrainConfig, TrainOptions, files, train};
+use crate::train::{Term, TrainConfig, TrainOptions, files, train};
 
 /// How to run [`run`].
 #[derive(Clone, Debug)]
@@ -97,18 +97,97 @@ fn smooth(points: &[(f64, f64)], k: usize) -> Vec<(f64, f64)> {
         .collect()
 }
 
-/// Plots `metric` of a run: training per iteration (light), its moving average over 50
-/// iterations (blue) and the validation passes (red).
-fn curve_plot(run: &Path, metric: &str, per_epoch: usize, png: &Path) -> Result<()> {
+/// Colours: training per iteration (light), its moving average (dark), validation (red).
+const LIGHT: [u8; 3] = [170, 190, 230];
+const DARK: [u8; 3] = [25, 70, 190];
+const VALID: [u8; 3] = [215, 45, 30];
+/// Iterations of the moving average.
+const SMOOTH: usize = 50;
+
+/// `metric`'s curves: training per iteration (light, thin), its moving average (dark) and
+/// the validation passes (red, dots), each labelled with `what` (e.g. "total"). Empty
+/// curves are left out.
+fn curves(run: &Path, metric: &str, what: &str, per_epoch: usize) -> Vec<Series> {
     let train = metric_curve(run, "train", metric, per_epoch);
     let valid = metric_curve(run, "valid", metric, per_epoch);
-    let series = [
-        ([0.75, 0.8, 0.95], train.clone()),
-        ([0.1, 0.3, 0.8], smooth(&train, 50)),
-        ([0.85, 0.2, 0.1], valid),
+    let s = |label: String, color, width, markers, points| Series {
+        label,
+        color,
+        width,
+        markers,
+        points,
+    };
+    vec![
+        s(
+            format!("{what}train, per iteration"),
+            LIGHT,
+            1,
+            false,
+            train.clone(),
+        ),
+        s(
+            format!("{what}train, mean of {SMOOTH}"),
+            DARK,
+            2,
+            false,
+            smooth(&train, SMOOTH),
+        ),
+        s(format!("{what}validation"), VALID, 2, true, valid),
     ]
-    .map(|(color, points)| Series { color, points });
-    line_plot(png, 640, 360, &series)
+    .into_iter()
+    .filter(|c| !c.points.is_empty())
+    .collect()
+}
+
+/// The training curves of a run as `loss.png` (log scale: the objective's training and
+/// validation curves and each logged term's moving average) and `psnr.png` in `report`,
+/// 800x500 each.
+fn curve_plots(run: &Path, per_epoch: usize, report: &Path) -> Result<()> {
+    let mut loss = curves(run, Term::Loss.name(), "total: ", per_epoch);
+    let colors = [
+        [40, 150, 60],
+        [235, 140, 20],
+        [150, 60, 180],
+        [120, 80, 40],
+        [20, 160, 170],
+    ];
+    let terms = Term::ALL
+        .into_iter()
+        .filter(|t| !matches!(t, Term::Loss | Term::Psnr));
+    for (term, color) in terms.zip(colors) {
+        // From the term's first non-zero value on (VGG is 0 until it is switched on).
+        let train = metric_curve(run, "train", term.name(), per_epoch);
+        let first = train.iter().position(|p| p.1 != 0.0).unwrap_or(train.len());
+        let points = smooth(&train[first..], SMOOTH);
+        // Terms that are never positive (e.g. VGG when off) have nothing to show on a log axis.
+        if points.iter().any(|p| p.1 > 0.0) {
+            loss.push(Series {
+                label: format!("{}: train, mean of {SMOOTH}", term.name()),
+                color,
+                width: 1,
+                markers: false,
+                points,
+            });
+        }
+    }
+    let fig = |title: &str, y: &str, log_y| Figure {
+        title: title.into(),
+        x_label: "iteration".into(),
+        y_label: y.into(),
+        log_y,
+        width: 800,
+        height: 500,
+    };
+    line_plot(
+        &report.join("loss.png"),
+        &fig("Training loss (log scale)", "loss", true),
+        &loss,
+    )?;
+    line_plot(
+        &report.join("psnr.png"),
+        &fig("PSNR", "PSNR (dB)", false),
+        &curves(run, Term::Psnr.name(), "", per_epoch),
+    )
 }
 
 /// Runs the whole job; `progress` gets one line per stage and the stages' own lines.
@@ -184,15 +263,16 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
     let eval_s = t.elapsed().as_secs_f64();
 
     let per = config.checkpoint_every.max(1);
-    curve_plot(&run_dir, "Loss", per, &report.join("loss.png"))?;
-    curve_plot(&run_dir, "PSNR", per, &report.join("psnr.png"))?;
+    curve_plots(&run_dir, per, &report)?;
     let total = start.elapsed().as_secs_f64();
     let text = format!(
         "# texavatars demo report\n\n\
          Synthetic benchmark: {} images ({synth_s:.0} s this run). Training: `{}` ({train_s:.0} s this run). \
          Evaluation: every {}-th frame of val / test / free ({eval_s:.0} s){}. Total {total:.0} s.\n\n{}\n\
-         Files: `metrics.json` (means and every image), `table.md`, `images/<split>/` (ground truth | render | error), \
-         `loss.png` and `psnr.png` (training per iteration: light; moving average of 50: blue; validation: red).\n",
+         Files: `metrics.json` (means and every image), `table.md`, `images/<split>/` (ground truth | render | error ×4, each under a header with its \
+         name, the render's with its PSNR), \
+         `loss.png` (log scale: the objective per iteration, its moving average over 50 iterations, validation, and each \
+         loss term's moving average) and `psnr.png` (training per iteration, moving average, validation).\n",
         s.images,
         opts.train_config.display(),
         opts.eval_stride,
@@ -237,6 +317,12 @@ mod tests {
             smooth(&[(1.0, 2.0), (2.0, 4.0), (3.0, 6.0)], 2),
             vec![(1.0, 2.0), (2.0, 3.0), (3.0, 5.0)]
         );
+        // The report's figures (PSNR without logs: empty axes).
+        curve_plots(&d, 2, &d).expect("plots");
+        for png in ["loss.png", "psnr.png"] {
+            let img = crate::io::image::read_rgb(&d.join(png)).expect(png);
+            assert_eq!((img.width, img.height), (800, 500), "{png}");
+        }
         let _ = std::fs::remove_dir_all(&d);
     }
 }

@@ -64,7 +64,7 @@ fn trained_avatar_is_scored_on_every_split() {
         Some(10 + 8 + 8 - 5)
     );
     assert!(opts.out.join("table.md").exists());
-    // A panel is ground truth | render | error.
+    // A panel is ground truth | render | error under a header row naming the columns.
     let p = std::fs::read_dir(opts.out.join("images/val"))
         .expect("dir")
         .next()
@@ -72,7 +72,9 @@ fn trained_avatar_is_scored_on_every_split() {
         .expect("entry")
         .path();
     let img = texavatars::io::image::read_rgb(&p).expect("png");
-    assert_eq!((img.width, img.height), (72, 32));
+    let header = texavatars::eval::plot::header_height(24);
+    assert!(header > 0);
+    assert_eq!((img.width, img.height), (72, header + 32));
     // A split without a transforms file is skipped with a message.
     std::fs::remove_file(union.join("transforms_free.json")).expect("rm");
     opts.splits = vec![Split::Free];

@@ -1,208 +1,540 @@
-//! Training curves as PNG without a plotting dependency: line series on a white canvas with
-//! axes, grid lines at round values, and tick labels in a built-in 3x5 pixel font.
+//! Report figures: line plots (training curves) and the text headers of the image panels.
+//!
+//! Drawn with [plotters](https://crates.io/crates/plotters) 0.3 (MIT), the maintained Rust
+//! plotting crate: axes with round ticks, axis descriptions, log axes, legends. Only its
+//! bitmap backend is enabled (`default-features = false`), rendering into a memory buffer that
+//! [`io::image::write_png`] writes; no native libraries.
+//!
+//! Text goes through plotters' `ab_glyph` feature with a font embedded in the binary: DejaVu
+//! Sans 2.37 from the [`dejavu`](https://crates.io/crates/dejavu) crate (the crate MIT /
+//! Apache-2.0; the font under the Bitstream Vera licence, DejaVu's changes in the public
+//! domain: free to use, embed and redistribute). No system font, no fontconfig: the figures
+//! look the same on a bare machine.
 
+use std::error::Error as _;
+use std::ops::Range;
 use std::path::Path;
+use std::sync::OnceLock;
 
-use crate::error::Result;
+use plotters::coord::Shift;
+use plotters::coord::ranged1d::{AsRangedCoord, Ranged, ValueFormatter};
+use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
+
+use crate::error::{Error, Result};
 use crate::io;
 
-/// One curve: its colour and (x, y) points.
+/// The font family every text here uses (DejaVu Sans, registered on first use).
+const FONT: &str = "sans-serif";
+
+/// Registers the embedded font with plotters once.
+fn fonts() -> Result<()> {
+    static DONE: OnceLock<bool> = OnceLock::new();
+    let ok = *DONE.get_or_init(|| {
+        plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular()).is_ok()
+    });
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            "plot",
+            "font",
+            "the embedded DejaVu Sans does not parse",
+        ))
+    }
+}
+
+fn plot_error(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::invalid(what, "plot", e.to_string())
+}
+
+/// One curve of a [`line_plot`].
 #[derive(Clone, Debug)]
 pub struct Series {
-    pub color: [f32; 3],
+    /// Its legend entry (no entry when empty).
+    pub label: String,
+    /// sRGB colour.
+    pub color: [u8; 3],
+    /// Line width in pixels (at the 800x500 reference size); 0 draws no line.
+    pub width: u32,
+    /// Marks each point with a dot.
+    pub markers: bool,
+    /// (x, y) points; non-finite ones (and on a log axis those <= 0) are skipped.
     pub points: Vec<(f64, f64)>,
 }
 
-/// Glyphs of the 3x5 font, rows top to bottom, bit 2 = left column.
-fn glyph(c: char) -> Option<[u8; 5]> {
-    Some(match c {
-        '0' => [7, 5, 5, 5, 7],
-        '1' => [2, 6, 2, 2, 7],
-        '2' => [7, 1, 7, 4, 7],
-        '3' => [7, 1, 7, 1, 7],
-        '4' => [5, 5, 7, 1, 1],
-        '5' => [7, 4, 7, 1, 7],
-        '6' => [7, 4, 7, 5, 7],
-        '7' => [7, 1, 1, 1, 1],
-        '8' => [7, 5, 7, 5, 7],
-        '9' => [7, 5, 7, 1, 7],
-        '.' => [0, 0, 0, 0, 2],
-        '-' => [0, 0, 7, 0, 0],
-        'e' => [0, 7, 7, 4, 7],
-        'k' => [4, 5, 6, 5, 5],
-        _ => return None,
-    })
+/// Titles and axes of a [`line_plot`].
+#[derive(Clone, Debug)]
+pub struct Figure {
+    pub title: String,
+    /// The x axis' description, with its unit.
+    pub x_label: String,
+    /// The y axis' description, with its unit.
+    pub y_label: String,
+    /// A logarithmic y axis.
+    pub log_y: bool,
+    /// Image size in pixels.
+    pub width: usize,
+    pub height: usize,
 }
 
-struct Canvas {
-    w: usize,
-    h: usize,
-    rgb: Vec<f32>,
-}
-
-impl Canvas {
-    fn set(&mut self, x: i64, y: i64, c: [f32; 3]) {
-        if x >= 0 && y >= 0 && (x as usize) < self.w && (y as usize) < self.h {
-            let o = (y as usize * self.w + x as usize) * 3;
-            self.rgb[o..o + 3].copy_from_slice(&c);
+/// A tick label: at most 3 significant digits, no trailing zeros, exponent form for very
+/// large or small magnitudes.
+fn tick_label(v: f64) -> String {
+    let a = v.abs();
+    if a == 0.0 || !v.is_finite() {
+        return "0".into();
+    }
+    let trim = |s: String| {
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s
         }
-    }
-
-    fn line(&mut self, (x0, y0): (f64, f64), (x1, y1): (f64, f64), c: [f32; 3]) {
-        let n = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
-        for i in 0..=n {
-            let t = i as f64 / n as f64;
-            self.set(
-                (x0 + t * (x1 - x0)).round() as i64,
-                (y0 + t * (y1 - y0)).round() as i64,
-                c,
-            );
-        }
-    }
-
-    /// Text with its top-left corner at (x, y), 2x scaled glyphs.
-    fn text(&mut self, x: i64, y: i64, s: &str, c: [f32; 3]) {
-        for (k, ch) in s.chars().enumerate() {
-            let Some(g) = glyph(ch) else { continue };
-            for (row, bits) in g.iter().enumerate() {
-                for col in 0..3 {
-                    if bits & (4 >> col) != 0 {
-                        for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                            self.set(x + k as i64 * 8 + col * 2 + dx, y + row as i64 * 2 + dy, c);
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// A "nice" tick step for a range (1, 2 or 5 times a power of ten), about 5 ticks.
-fn tick_step(range: f64) -> f64 {
-    let raw = (range / 5.0).max(f64::MIN_POSITIVE);
-    let p = 10f64.powf(raw.log10().floor());
-    [1.0, 2.0, 5.0, 10.0]
-        .into_iter()
-        .map(|m| m * p)
-        .find(|s| *s >= raw)
-        .unwrap_or(10.0 * p)
-}
-
-fn label(v: f64, step: f64) -> String {
-    if v.abs() >= 1000.0 && (v / 1000.0).fract() == 0.0 {
-        format!("{}k", v / 1000.0)
-    } else if step >= 1.0 {
-        format!("{v:.0}")
-    } else {
-        let digits = (-step.log10().floor()) as usize;
-        format!("{v:.digits$}")
-    }
-}
-
-/// Draws `series` into a `width x height` PNG at `path`. Non-finite points are skipped.
-pub fn line_plot(path: &Path, width: usize, height: usize, series: &[Series]) -> Result<()> {
-    let mut cv = Canvas {
-        w: width,
-        h: height,
-        rgb: vec![1.0; width * height * 3],
     };
-    let pts = || {
-        series
-            .iter()
-            .flat_map(|s| &s.points)
-            .filter(|(x, y)| x.is_finite() && y.is_finite())
-    };
+    if !(1e-3..1e5).contains(&a) {
+        let s = format!("{v:.2e}");
+        let (m, e) = s.split_once('e').unwrap_or((&s, "0"));
+        return format!("{}e{e}", trim(m.to_string()));
+    }
+    let digits = (2 - a.log10().floor() as i32).clamp(0, 6) as usize;
+    trim(format!("{v:.digits$}"))
+}
+
+/// The points of `s` that the axis can show.
+fn shown(s: &Series, log_y: bool) -> impl Iterator<Item = (f64, f64)> + '_ {
+    s.points
+        .iter()
+        .copied()
+        .filter(move |&(x, y)| x.is_finite() && y.is_finite() && (!log_y || y > 0.0))
+}
+
+/// Data ranges (x, y) over the shown points, padded; defaults when there are none.
+fn ranges(series: &[Series], log_y: bool) -> (Range<f64>, Range<f64>) {
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in pts() {
+    for (x, y) in series.iter().flat_map(|s| shown(s, log_y)) {
         x0 = x0.min(x);
         x1 = x1.max(x);
         y0 = y0.min(y);
         y1 = y1.max(y);
     }
     if x0 > x1 {
-        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+        return (0.0..1.0, if log_y { 0.1..1.0 } else { 0.0..1.0 });
     }
     if x1 - x0 < 1e-12 {
-        x1 = x0 + 1.0;
+        (x0, x1) = (x0 - 0.5, x1 + 0.5);
+    } else if x0 > 0.0 && x0 < 0.05 * (x1 - x0) {
+        // Iterations from 1: the axis from 0.
+        x0 = 0.0;
     }
-    if y1 - y0 < 1e-12 {
-        y1 = y0 + 1.0;
+    let y = if log_y {
+        // A fifth of a decade beyond the data; at least one decade in all.
+        let (mut lo, mut hi) = (y0.log10() - 0.2, y1.log10() + 0.2);
+        if hi - lo < 1.0 {
+            let mid = 0.5 * (lo + hi);
+            (lo, hi) = (mid - 0.5, mid + 0.5);
+        }
+        10f64.powf(lo)..10f64.powf(hi)
+    } else {
+        let pad = if y1 - y0 < 1e-12 {
+            0.5 * y0.abs().max(1.0)
+        } else {
+            0.05 * (y1 - y0)
+        };
+        y0 - pad..y1 + pad
+    };
+    (x0..x1, y)
+}
+
+/// Draws `series` with `fig`'s titles and axes into a PNG at `path`, with a legend of the
+/// labelled series where it hides the fewest curve pixels (the upper right when free).
+pub fn line_plot(path: &Path, fig: &Figure, series: &[Series]) -> Result<()> {
+    let rgb = render_plot(fig, series).map_err(|e| plot_error(&path.display().to_string(), e))?;
+    let floats: Vec<f32> = rgb.iter().map(|&v| v as f32 / 255.0).collect();
+    io::image::write_png(path, fig.width, fig.height, &floats)
+}
+
+/// [`line_plot`]'s pixels: [H, W, 3] bytes.
+fn render_plot(fig: &Figure, series: &[Series]) -> std::result::Result<Vec<u8>, String> {
+    fonts().map_err(|e| e.to_string())?;
+    let (w, h) = (fig.width.max(1), fig.height.max(1));
+    let mut buf = vec![255u8; w * h * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w as u32, h as u32)).into_drawing_area();
+        let (x, y) = ranges(series, fig.log_y);
+        let res = if fig.log_y {
+            draw_chart(&root, fig, series, x, y.log_scale())
+        } else {
+            draw_chart(&root, fig, series, x, y)
+        };
+        res.map_err(|e| e.source().map_or(e.to_string(), |s| s.to_string()))?;
+        root.present().map_err(|e| e.to_string())?;
     }
-    let (left, right, top, bottom) = (60.0, 12.0, 12.0, 30.0);
-    let pw = width as f64 - left - right;
-    let ph = height as f64 - top - bottom;
-    let sx = |x: f64| left + (x - x0) / (x1 - x0) * pw;
-    let sy = |y: f64| top + (1.0 - (y - y0) / (y1 - y0)) * ph;
-    let grid = [0.9f32; 3];
-    let ink = [0.2f32; 3];
-    let ys = tick_step(y1 - y0);
-    let mut t = (y0 / ys).ceil() * ys;
-    while t <= y1 + 1e-9 {
-        cv.line((left, sy(t)), (left + pw, sy(t)), grid);
-        cv.text(4, sy(t) as i64 - 5, &label(t, ys), ink);
-        t += ys;
-    }
-    let xs = tick_step(x1 - x0);
-    let mut t = (x0 / xs).ceil() * xs;
-    while t <= x1 + 1e-9 {
-        cv.line((sx(t), top), (sx(t), top + ph), grid);
-        cv.text(
-            sx(t) as i64 - 8,
-            (top + ph + 8.0) as i64,
-            &label(t, xs),
-            ink,
-        );
-        t += xs;
-    }
-    cv.line((left, top), (left, top + ph), ink);
-    cv.line((left, top + ph), (left + pw, top + ph), ink);
-    for s in series {
-        let mut prev: Option<(f64, f64)> = None;
-        for &(x, y) in s
-            .points
+    Ok(buf)
+}
+
+type DrawResult<'a> =
+    std::result::Result<(), DrawingAreaErrorKind<<BitMapBackend<'a> as DrawingBackend>::ErrorType>>;
+
+fn draw_chart<'a, Y>(
+    root: &DrawingArea<BitMapBackend<'a>, Shift>,
+    fig: &Figure,
+    series: &[Series],
+    x: Range<f64>,
+    y: Y,
+) -> DrawResult<'a>
+where
+    Y: AsRangedCoord<Value = f64>,
+    Y::CoordDescType: Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
+    // Sizes for 800x500, scaled with the image (never below 10 px text).
+    let s = (fig.width as f64 / 800.0).min(fig.height as f64 / 500.0);
+    let px = |v: f64| (v * s).max(10.0);
+    let ink = RGBColor(40, 40, 40);
+    root.fill(&WHITE)?;
+    let mut chart = ChartBuilder::on(root)
+        .caption(&fig.title, (FONT, px(24.0)).into_font().color(&ink))
+        .margin((12.0 * s).max(4.0) as u32)
+        .margin_right((24.0 * s).max(6.0) as u32)
+        .x_label_area_size(px(48.0) as u32)
+        .y_label_area_size(px(72.0) as u32)
+        .build_cartesian_2d(x, y)?;
+    let xfmt = |v: &f64| tick_label(*v);
+    let yfmt = |v: &f64| tick_label(*v);
+    chart
+        .configure_mesh()
+        .x_desc(&fig.x_label)
+        .y_desc(&fig.y_label)
+        .x_label_formatter(&xfmt)
+        .y_label_formatter(&yfmt)
+        .label_style((FONT, px(15.0)).into_font().color(&ink))
+        .axis_desc_style((FONT, px(17.0)).into_font().color(&ink))
+        .bold_line_style(BLACK.mix(0.12))
+        .light_line_style(BLACK.mix(if fig.log_y { 0.05 } else { 0.0 }))
+        .axis_style(ink)
+        .draw()?;
+    let log_y = fig.log_y;
+    let mut labels: Vec<&str> = Vec::new();
+    // Where the curves run, in plotting-area pixels (segments sampled every 2 px), to put the
+    // legend where it hides the least.
+    let base = chart.plotting_area().get_base_pixel();
+    let mut occupied: Vec<(i32, i32)> = Vec::new();
+    for se in series {
+        let pts: Vec<(f64, f64)> = shown(se, log_y).collect();
+        if pts.is_empty() {
+            continue;
+        }
+        let pix: Vec<(i32, i32)> = pts
             .iter()
-            .filter(|(x, y)| x.is_finite() && y.is_finite())
-        {
-            let p = (sx(x), sy(y));
-            if let Some(q) = prev {
-                cv.line(q, p, s.color);
-            } else {
-                cv.set(p.0 as i64, p.1 as i64, s.color);
+            .map(|p| {
+                let (x, y) = chart.backend_coord(p);
+                (x - base.0, y - base.1)
+            })
+            .collect();
+        occupied.extend(&pix);
+        let color = RGBColor(se.color[0], se.color[1], se.color[2]);
+        let lw = ((se.width as f64 * s).round() as u32).max(u32::from(se.width > 0));
+        let dot = (3.0 * s).max(2.0) as i32;
+        if lw > 0 {
+            for w in pix.windows(2) {
+                let (a, b) = (w[0], w[1]);
+                let (dx, dy) = (b.0 as i64 - a.0 as i64, b.1 as i64 - a.1 as i64);
+                let n = (dx.abs().max(dy.abs()) / 2).clamp(1, 1 << 16);
+                occupied.extend((1..n).map(|k| {
+                    (
+                        (a.0 as i64 + dx * k / n) as i32,
+                        (a.1 as i64 + dy * k / n) as i32,
+                    )
+                }));
             }
-            prev = Some(p);
+            let ann = chart.draw_series(LineSeries::new(pts.clone(), color.stroke_width(lw)))?;
+            if !se.label.is_empty() && !se.markers {
+                labels.push(&se.label);
+                ann.label(&se.label).legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(lw.max(2)))
+                });
+            }
+        }
+        if se.markers {
+            let ann =
+                chart.draw_series(pts.iter().map(|&p| Circle::new(p, dot, color.filled())))?;
+            if !se.label.is_empty() {
+                labels.push(&se.label);
+                ann.label(&se.label).legend(move |(x, y)| {
+                    EmptyElement::at((x, y))
+                        + PathElement::new(vec![(0, 0), (20, 0)], color.stroke_width(lw))
+                        + Circle::new((10, 0), dot, color.filled())
+                });
+            }
         }
     }
-    io::image::write_png(path, width, height, &cv.rgb)
+    if !labels.is_empty() {
+        let font = (FONT, px(14.0)).into_font().color(&ink);
+        let margin = px(10.0) as u32;
+        let mut text = MultiLineText::<_, &str>::new((0, 0), &font);
+        for l in &labels {
+            text.push_line(*l);
+        }
+        // plotters' legend box: the text, 30 px for the samples, the margin around.
+        let (tw, th) = text
+            .estimate_dimension()
+            .unwrap_or((200, 20 * labels.len() as i32));
+        let size = (tw + 30 + 2 * margin as i32, th + 2 * margin as i32);
+        let (aw, ah) = chart.plotting_area().dim_in_pixel();
+        let at = legend_position(size, (aw as i32, ah as i32), &occupied);
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::Coordinate(at.0, at.1))
+            .label_font(font)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK.mix(0.3))
+            .margin(margin)
+            .draw()?;
+    }
+    Ok(())
+}
+
+/// The top-left corner of a legend box of `size` in a plotting area of `area` pixels: the
+/// corner, edge middle or centre position covering the fewest `occupied` pixels, preferring
+/// the upper right, then the other corners.
+fn legend_position(size: (i32, i32), area: (i32, i32), occupied: &[(i32, i32)]) -> (i32, i32) {
+    let m = 8;
+    let xs = [area.0 - size.0 - m, m, (area.0 - size.0) / 2];
+    let ys = [m, area.1 - size.1 - m, (area.1 - size.1) / 2];
+    let order = [
+        (0, 0),
+        (1, 0),
+        (0, 1),
+        (1, 1),
+        (2, 0),
+        (2, 1),
+        (0, 2),
+        (1, 2),
+        (2, 2),
+    ];
+    let hidden = |(x, y): (i32, i32)| {
+        occupied
+            .iter()
+            .filter(|p| {
+                (x - 4..=x + size.0 + 4).contains(&p.0) && (y - 4..=y + size.1 + 4).contains(&p.1)
+            })
+            .count()
+    };
+    order
+        .iter()
+        .map(|&(i, j)| (xs[i].max(0), ys[j].max(0)))
+        .min_by_key(|&p| hidden(p))
+        .unwrap_or((m, m))
+}
+
+/// The text size of a panel header for image columns `column_width` pixels wide: 6 % of the
+/// width, at least 12 px.
+pub fn header_font_px(column_width: usize) -> f64 {
+    (0.06 * column_width as f64).round().max(12.0)
+}
+
+/// The height of a panel header (a line of [`header_font_px`] text with some space).
+pub fn header_height(column_width: usize) -> usize {
+    (1.7 * header_font_px(column_width)).round() as usize
+}
+
+/// A white header band, [`header_height`]`(column_width)` rows by `column_width *
+/// labels.len()` columns, with each label centred over its column in dark text (shrunk to fit
+/// the column down to 10 px, clipped below that): [H, W, 3] floats in [0, 1].
+pub fn header(column_width: usize, labels: &[&str]) -> Result<Vec<f32>> {
+    fonts()?;
+    let h = header_height(column_width);
+    let w = column_width * labels.len();
+    let mut out = vec![1.0f32; h * w * 3];
+    if column_width == 0 {
+        return Ok(out);
+    }
+    let size = header_font_px(column_width);
+    for (k, label) in labels.iter().enumerate() {
+        let mut cell = vec![255u8; h * column_width * 3];
+        {
+            let area = BitMapBackend::with_buffer(&mut cell, (column_width as u32, h as u32))
+                .into_drawing_area();
+            let style = |px: f64| {
+                (FONT, px)
+                    .into_font()
+                    .color(&RGBColor(20, 20, 20))
+                    .pos(Pos::new(HPos::Center, VPos::Center))
+            };
+            let fit = area
+                .estimate_text_size(label, &style(size))
+                .map(|(tw, _)| {
+                    let room = column_width.saturating_sub(4).max(1) as f64;
+                    if tw as f64 > room {
+                        (size * room / tw as f64).max(10.0)
+                    } else {
+                        size
+                    }
+                })
+                .map_err(|e| plot_error("panel header", e))?;
+            area.draw_text(
+                label,
+                &style(fit),
+                ((column_width / 2) as i32, (h / 2) as i32),
+            )
+            .map_err(|e| plot_error("panel header", e))?;
+            area.present().map_err(|e| plot_error("panel header", e))?;
+        }
+        for row in 0..h {
+            for col in 0..column_width {
+                let i = (row * column_width + col) * 3;
+                let o = (row * w + k * column_width + col) * 3;
+                for c in 0..3 {
+                    out[o + c] = cell[i + c] as f32 / 255.0;
+                }
+            }
+        }
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn ticks_are_round() {
-        assert_eq!(tick_step(10.0), 2.0);
-        assert_eq!(tick_step(0.3), 0.1);
-        assert_eq!(tick_step(7000.0), 2000.0);
-        assert_eq!(label(2000.0, 1000.0), "2k");
-        assert_eq!(label(0.25, 0.05), "0.25");
+    fn tmp(name: &str) -> std::path::PathBuf {
+        std::env::temp_dir().join(format!("texavatars-plot-{name}-{}.png", std::process::id()))
+    }
+
+    /// Non-white pixels of `img` in rows `r` and columns `c`.
+    fn ink(img: &io::image::RgbImage, r: Range<usize>, c: Range<usize>) -> usize {
+        r.flat_map(|y| c.clone().map(move |x| (y, x)))
+            .filter(|&(y, x)| {
+                let o = (y * img.width + x) * 3;
+                img.rgb[o..o + 3].iter().any(|&v| v < 0.6)
+            })
+            .count()
+    }
+
+    fn fig(log_y: bool) -> Figure {
+        Figure {
+            title: "Training loss".into(),
+            x_label: "iteration".into(),
+            y_label: "loss".into(),
+            log_y,
+            width: 800,
+            height: 500,
+        }
     }
 
     #[test]
-    fn plot_draws_the_series() {
-        let p = std::env::temp_dir().join(format!("texavatars-plot-{}.png", std::process::id()));
+    fn tick_labels_are_short() {
+        assert_eq!(tick_label(2000.0), "2000");
+        assert_eq!(tick_label(0.25), "0.25");
+        assert_eq!(tick_label(0.1), "0.1");
+        assert_eq!(tick_label(0.30000000000000004), "0.3");
+        assert_eq!(tick_label(31.25), "31.2");
+        assert_eq!(tick_label(1e-4), "1e-4");
+        assert_eq!(tick_label(0.0), "0");
+    }
+
+    #[test]
+    fn plot_has_title_axes_and_series() {
+        let p = tmp("lin");
         let s = Series {
-            color: [1.0, 0.0, 0.0],
+            label: "train".into(),
+            color: [220, 30, 30],
+            width: 2,
+            markers: false,
             points: (0..50).map(|i| (i as f64, (i as f64).sqrt())).collect(),
         };
-        line_plot(&p, 200, 120, &[s]).expect("plot");
+        let mut f = fig(false);
+        f.title = "PSNR".into();
+        f.y_label = "PSNR (dB)".into();
+        line_plot(&p, &f, &[s]).expect("plot");
         let img = io::image::read_rgb(&p).expect("read");
+        assert_eq!((img.width, img.height), (800, 500));
+        // the title band: text at the top centre
+        assert!(ink(&img, 0..40, 300..500) > 50, "no title");
+        // the plotting area holds the red curve
         let red = img
             .rgb
             .chunks(3)
-            .filter(|c| c[0] > 0.9 && c[1] < 0.1 && c[2] < 0.1)
+            .filter(|c| c[0] > 0.8 && c[1] < 0.25 && c[2] < 0.25)
             .count();
-        assert!(red > 100, "{red} red pixels");
+        assert!(red > 300, "{red} red pixels");
+        // tick labels left of the axis and the x description below it
+        assert!(ink(&img, 60..440, 0..60) > 50, "no y labels");
+        assert!(ink(&img, 460..500, 300..500) > 30, "no x description");
         let _ = std::fs::remove_file(&p);
+    }
+
+    #[test]
+    fn log_plot_skips_values_it_cannot_show() {
+        let p = tmp("log");
+        let mut pts: Vec<(f64, f64)> = (1..300).map(|i| (i as f64, 1.0 / i as f64)).collect();
+        pts.extend([
+            (300.0, 0.0),
+            (301.0, -1.0),
+            (302.0, f64::NAN),
+            (f64::INFINITY, 1.0),
+        ]);
+        let series = [
+            Series {
+                label: "total".into(),
+                color: [30, 60, 200],
+                width: 2,
+                markers: false,
+                points: pts,
+            },
+            // nothing to show: no line, no legend entry, no panic
+            Series {
+                label: "zero".into(),
+                color: [0, 0, 0],
+                width: 2,
+                markers: true,
+                points: vec![(1.0, 0.0), (2.0, -3.0), (3.0, f64::NAN)],
+            },
+        ];
+        line_plot(&p, &fig(true), &series).expect("log plot");
+        let img = io::image::read_rgb(&p).expect("read");
+        assert_eq!((img.width, img.height), (800, 500));
+        assert!(ink(&img, 0..40, 300..500) > 50, "no title");
+        let blue = img
+            .rgb
+            .chunks(3)
+            .filter(|c| c[2] > 0.7 && c[0] < 0.3 && c[1] < 0.4)
+            .count();
+        assert!(blue > 300, "{blue} blue pixels");
+        // only invalid values: empty axes, still a figure
+        line_plot(&p, &fig(true), &series[1..]).expect("empty log plot");
+        line_plot(&p, &fig(false), &[]).expect("empty plot");
+        let _ = std::fs::remove_file(&p);
+    }
+
+    #[test]
+    fn legend_goes_where_the_curves_are_not() {
+        let area = (600, 400);
+        let size = (200, 100);
+        // free: upper right
+        assert_eq!(legend_position(size, area, &[]), (392, 8));
+        // a curve in the upper right: upper left
+        let busy: Vec<(i32, i32)> = (400..600).map(|x| (x, 50)).collect();
+        assert_eq!(legend_position(size, area, &busy), (8, 8));
+    }
+
+    #[test]
+    fn header_centres_labels_over_columns() {
+        let w = 138;
+        let h = header_height(w);
+        assert_eq!(h, 20);
+        assert_eq!(header_height(550), 56);
+        let band = header(w, &["a long label", "", "x"]).expect("header");
+        assert_eq!(band.len(), h * 3 * w * 3);
+        let img = io::image::RgbImage {
+            width: 3 * w,
+            height: h,
+            rgb: band,
+        };
+        assert!(ink(&img, 0..h, 0..w) > 30);
+        assert_eq!(ink(&img, 0..h, w..2 * w), 0);
+        // "x" sits in the middle of the third column
+        assert!(ink(&img, 0..h, 2 * w + w / 2 - 8..2 * w + w / 2 + 8) > 5);
+        assert_eq!(ink(&img, 0..h, 2 * w..2 * w + w / 3), 0);
     }
 }

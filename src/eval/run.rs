@@ -7,7 +7,8 @@
 //! subject (`RUN/canonical_flame_param.npz`, written by `train`; for runs without it, each
 //! export's own, see [`crate::data::identity`]). Writes
 //! `metrics.json` (means per split and every image's scores), `table.md` (the paper's
-//! layout) and `images/<split>/TTTTT_CC.png` panels (ground truth | render | error).
+//! layout) and `images/<split>/TTTTT_CC.png` panels (ground truth | render | error, under a
+//! header row naming them, with the render's PSNR).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -183,8 +184,9 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
             let scores = scorer.score(&gt, &render, h, w)?;
             tally.add(split, &scores);
             if panel_at.binary_search(&k).is_ok() {
-                let p = panel(&gt, &render, h, w);
-                io::image::write_png(&dir.join(format!("{t:05}_{c:02}.png")), w * 3, h, &p)?;
+                let p = panel(&gt, &render, h, w, scores.psnr)?;
+                let png = dir.join(format!("{t:05}_{c:02}.png"));
+                io::image::write_png(&png, p.width, p.height, &p.rgb)?;
             }
             images.push(ImageScore {
                 split: split.clone(),

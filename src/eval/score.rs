@@ -202,15 +202,31 @@ pub fn paper_table(means: &BTreeMap<String, Means>) -> String {
     s
 }
 
-/// Ground truth | render | error, side by side: [H, 3W, 3]. The error e is the mean absolute
-/// channel difference times 4, shown black (0) → red (e = 0.5) → yellow (e >= 1, i.e. a
-/// mean difference of 0.25 or more).
-pub fn panel(reference: &[f32], image: &[f32], height: usize, width: usize) -> Vec<f32> {
-    let mut out = vec![0.0f32; height * width * 9];
+/// Ground truth | render | error side by side under a header row naming the columns, the
+/// render's with its PSNR (`psnr`, dB; "identical" when infinite): a 3W-wide image of
+/// [`header_height`](crate::eval::plot::header_height)`(W)` header rows and the H image rows. The error e is the mean
+/// absolute channel difference times 4 ("error ×4"), shown black (0) → red (e = 0.5) →
+/// yellow (e >= 1, i.e. a mean difference of 0.25 or more).
+pub fn panel(
+    reference: &[f32],
+    image: &[f32],
+    height: usize,
+    width: usize,
+    psnr: f64,
+) -> Result<crate::io::image::RgbImage> {
+    use crate::eval::plot;
+    let render = if psnr.is_finite() {
+        format!("render, {psnr:.1} dB")
+    } else {
+        "render, identical".to_string()
+    };
+    let mut out = plot::header(width, &["ground truth", &render, "error ×4"])?;
+    let top = out.len();
+    out.resize(top + height * width * 9, 0.0);
     for y in 0..height {
         for x in 0..width {
             let i = (y * width + x) * 3;
-            let o = (y * width * 3 + x) * 3;
+            let o = top + (y * width * 3 + x) * 3;
             let (r, g) = (&reference[i..i + 3], &image[i..i + 3]);
             let e = (0..3).map(|c| (r[c] - g[c]).abs()).sum::<f32>() / 3.0 * 4.0;
             let heat = [
@@ -225,12 +241,17 @@ pub fn panel(reference: &[f32], image: &[f32], height: usize, width: usize) -> V
             }
         }
     }
-    out
+    Ok(crate::io::image::RgbImage {
+        width: 3 * width,
+        height: plot::header_height(width) + height,
+        rgb: out,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::eval::plot;
 
     #[test]
     fn tally_means_and_table() {
@@ -264,18 +285,61 @@ mod tests {
         let r = vec![0.5f32; 2 * 2 * 3];
         let mut g = r.clone();
         g[0] = 1.0; // pixel (0, 0), red channel off by 0.5
-        let p = panel(&r, &g, 2, 2);
-        assert_eq!(p.len(), 2 * 6 * 3);
-        assert_eq!(&p[0..3], &[0.5, 0.5, 0.5]); // reference
-        assert_eq!(&p[6..9], &[1.0, 0.5, 0.5]); // render
+        let p = panel(&r, &g, 2, 2, 31.24).expect("panel");
+        let top = plot::header_height(2);
+        assert_eq!((p.width, p.height), (6, top + 2));
+        assert_eq!(p.rgb.len(), (top + 2) * 6 * 3);
+        let q = &p.rgb[top * 6 * 3..];
+        assert_eq!(&q[0..3], &[0.5, 0.5, 0.5]); // reference
+        assert_eq!(&q[6..9], &[1.0, 0.5, 0.5]); // render
         // error of pixel (0, 0): mean 0.5 / 3 * 4 = 0.667: red on, some green
         assert!(
-            p[12] > 0.6 && p[13] > 0.3 && p[14] == 0.0,
+            q[12] > 0.6 && q[13] > 0.3 && q[14] == 0.0,
             "{:?}",
-            &p[12..15]
+            &q[12..15]
         );
         // error-free pixel (1, 0) is black
-        assert_eq!(&p[15..18], &[0.0, 0.0, 0.0]);
+        assert_eq!(&q[15..18], &[0.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn panel_header_names_the_columns() {
+        // The demo's image size: 138 x 200, a uniform grey reference and a darker render.
+        let (h, w) = (200, 138);
+        let r = vec![0.5f32; h * w * 3];
+        let g = vec![0.4f32; h * w * 3];
+        let p = panel(&r, &g, h, w, 20.0).expect("panel");
+        let top = plot::header_height(w);
+        assert!(top >= 17, "{top} header rows");
+        assert_eq!((p.width, p.height), (3 * w, top + h));
+        let px = |y: usize, x: usize| &p.rgb[(y * p.width + x) * 3..(y * p.width + x) * 3 + 3];
+        // a white band with dark text in each of the three columns
+        for k in 0..3 {
+            let (mut text, mut white) = (0, 0);
+            for y in 0..top {
+                for x in k * w..(k + 1) * w {
+                    let v = px(y, x);
+                    text += usize::from(v.iter().all(|&c| c < 0.5));
+                    white += usize::from(v.iter().all(|&c| c == 1.0));
+                }
+            }
+            assert!(text > 20, "column {k}: {text} text pixels");
+            assert!(white > top * w / 2, "column {k}: {white} white pixels");
+        }
+        // the columns' contents start right below the header, at their offsets
+        for y in [top, top + h - 1] {
+            assert_eq!(px(y, 0), &[0.5, 0.5, 0.5]);
+            assert_eq!(px(y, w - 1), &[0.5, 0.5, 0.5]);
+            assert_eq!(px(y, w), &[0.4, 0.4, 0.4]);
+            assert_eq!(px(y, 2 * w - 1), &[0.4, 0.4, 0.4]);
+            // error 0.1 * 4 = 0.4: red 0.8, no green
+            let e = px(y, 2 * w);
+            assert!((e[0] - 0.8).abs() < 1e-5 && e[1] == 0.0, "{e:?}");
+        }
+        if std::env::var_os("TEXAVATARS_KEEP_PANEL").is_some() {
+            let out = std::env::temp_dir().join("texavatars-panel.png");
+            crate::io::image::write_png(&out, p.width, p.height, &p.rgb).expect("png");
+        }
     }
 
     #[test]
