@@ -12,27 +12,37 @@ pub const LEAKY_RELU_SLOPE: f64 = 0.2;
 /// upsampling stage doubles it, so `R_uv = BASE_RES * 2^k` for `k` stages.
 pub const BASE_RES: usize = 8;
 
+/// Kernel side, stride and padding of a square convolution.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConvShape {
+    pub kernel: usize,
+    pub stride: usize,
+    pub padding: usize,
+}
+
 /// Transposed convolutions: kernel 4, stride 2, padding 1, so that the output side is
 /// exactly twice the input side (`(n - 1) * 2 - 2 + 4 = 2n`).
-pub const UP_KERNEL: usize = 4;
-/// See [`UP_KERNEL`].
-pub const UP_STRIDE: usize = 2;
-/// See [`UP_KERNEL`].
-pub const UP_PADDING: usize = 1;
+pub const UP: ConvShape = ConvShape {
+    kernel: 4,
+    stride: 2,
+    padding: 1,
+};
 
 /// The appearance decoder's 3x3 convolutions after the view injection keep the resolution
 /// (stride 1, padding 1).
-pub const MID_KERNEL: usize = 3;
-/// See [`MID_KERNEL`].
-pub const MID_PADDING: usize = 1;
+pub const MID: ConvShape = ConvShape {
+    kernel: 3,
+    stride: 1,
+    padding: 1,
+};
 
 /// The view encoder's convolutions: 3x3, stride 2, padding 1, each halving the side
 /// (`floor((n + 2 - 3) / 2) + 1 = n / 2` for even `n`).
-pub const VIEW_KERNEL: usize = 3;
-/// See [`VIEW_KERNEL`].
-pub const VIEW_STRIDE: usize = 2;
-/// See [`VIEW_KERNEL`].
-pub const VIEW_PADDING: usize = 1;
+pub const VIEW: ConvShape = ConvShape {
+    kernel: 3,
+    stride: 2,
+    padding: 1,
+};
 
 /// Channels of a Pluecker map: moment `o x d` (3) then direction `d` (3).
 pub const PLUECKER_CHANNELS: usize = 6;

@@ -79,18 +79,39 @@ pub struct ConvTGradients<B: Backend> {
 /// Backends with the transposed convolution of this module.
 #[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait ConvTBackend: Backend {
-    /// `x` [N, C_in, H, W], `weight` [C_in, C_out, k_h, k_w] (PyTorch's layout) →
-    /// [N, C_out, H_out, W_out].
-    fn conv_t(x: FloatTensor<Self>, weight: FloatTensor<Self>, p: ConvTParams)
-    -> FloatTensor<Self>;
+    /// `x` `[N, C_in, H, W]`, `weight` `[C_in, C_out, k_h, k_w]` (PyTorch's layout) →
+    /// `[N, C_out, H_out, W_out]`. Default: the backend's own `conv_transpose2d`.
+    fn conv_t(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        p: ConvTParams,
+    ) -> FloatTensor<Self> {
+        use burn::backend::ops::ModuleOps;
+        <Self as ModuleOps<Self>>::conv_transpose2d(x, weight, None, p.options())
+    }
 
-    /// Backward: `grad_out` [N, C_out, H_out, W_out] → gradients of `x` and `weight`.
+    /// Backward: `grad_out` `[N, C_out, H_out, W_out]` → gradients of `x` and `weight`.
+    /// Default: the backend's own input and weight backward passes.
     fn conv_t_backward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         grad_out: FloatTensor<Self>,
         p: ConvTParams,
-    ) -> ConvTGradients<Self>;
+    ) -> ConvTGradients<Self> {
+        use burn::backend::ops::ModuleOps;
+        let dx = <Self as ModuleOps<Self>>::conv_transpose2d_x_backward(
+            weight.clone(),
+            grad_out.clone(),
+            p.options(),
+        );
+        let dw = <Self as ModuleOps<Self>>::conv_transpose2d_weight_backward(
+            x,
+            weight,
+            grad_out,
+            p.options(),
+        );
+        ConvTGradients { x: dx, weight: dw }
+    }
 }
 
 /// The transposed convolution of this module on any backend (see the module docs).
@@ -397,6 +418,20 @@ fn host_conv_t_backward<H: HostIo>(
     }
 }
 
+/// This module's backward on the host (gemm + im2col), for the CPU backends.
+macro_rules! host_backward {
+    () => {
+        fn conv_t_backward(
+            x: FloatTensor<Self>,
+            weight: FloatTensor<Self>,
+            grad_out: FloatTensor<Self>,
+            p: ConvTParams,
+        ) -> ConvTGradients<Self> {
+            host_conv_t_backward::<Self>(x, weight, grad_out, p)
+        }
+    };
+}
+
 /// burn-ndarray's own `conv_transpose2d` is two orders of magnitude slower than the column
 /// formulation here (942 ms against 4 ms for one `cpu` decoder layer): both passes are ours.
 impl ConvTBackend for NdArray {
@@ -408,69 +443,17 @@ impl ConvTBackend for NdArray {
         host_conv_t::<Self>(x, weight, p)
     }
 
-    fn conv_t_backward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad_out: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> ConvTGradients<Self> {
-        host_conv_t_backward::<Self>(x, weight, grad_out, p)
-    }
+    host_backward!();
 }
 
 /// burn-flex's tiled forward is faster than ours (96 ms against 114 ms for the `paper`
 /// decoders), so flex keeps it; the backward is ours.
 impl ConvTBackend for Flex {
-    fn conv_t(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> FloatTensor<Self> {
-        use burn::backend::ops::ModuleOps;
-        <Self as ModuleOps<Self>>::conv_transpose2d(x, weight, None, p.options())
-    }
-
-    fn conv_t_backward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad_out: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> ConvTGradients<Self> {
-        host_conv_t_backward::<Self>(x, weight, grad_out, p)
-    }
+    host_backward!();
 }
 
-impl ConvTBackend for Cube {
-    fn conv_t(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> FloatTensor<Self> {
-        use burn::backend::ops::ModuleOps;
-        <Self as ModuleOps<Self>>::conv_transpose2d(x, weight, None, p.options())
-    }
-
-    fn conv_t_backward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad_out: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> ConvTGradients<Self> {
-        use burn::backend::ops::ModuleOps;
-        let dx = <Self as ModuleOps<Self>>::conv_transpose2d_x_backward(
-            weight.clone(),
-            grad_out.clone(),
-            p.options(),
-        );
-        let dw = <Self as ModuleOps<Self>>::conv_transpose2d_weight_backward(
-            x,
-            weight,
-            grad_out,
-            p.options(),
-        );
-        ConvTGradients { x: dx, weight: dw }
-    }
-}
+/// The GPU backend keeps burn's CubeCL passes.
+impl ConvTBackend for Cube {}
 
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
@@ -660,27 +643,24 @@ mod tests {
         let dx = host(x.grad(&grads).expect("x grad"));
         let dw = host(wt.grad(&grads).expect("w grad"));
         let eps = 0.5f32;
-        for i in 0..xs.len() {
-            let (mut a, mut b) = (xs.clone(), xs.clone());
-            a[i] += eps;
-            b[i] -= eps;
-            let fd = (loss(&a, &ws) - loss(&b, &ws)) / (2.0 * eps as f64);
-            assert!(
-                (fd - dx[i] as f64).abs() < 1e-4,
-                "dx[{i}]: {fd} vs {}",
-                dx[i]
-            );
-        }
-        for i in 0..ws.len() {
-            let (mut a, mut b) = (ws.clone(), ws.clone());
-            a[i] += eps;
-            b[i] -= eps;
-            let fd = (loss(&xs, &a) - loss(&xs, &b)) / (2.0 * eps as f64);
-            assert!(
-                (fd - dw[i] as f64).abs() < 1e-4,
-                "dw[{i}]: {fd} vs {}",
-                dw[i]
-            );
+        // Central differences of the loss in each input value (`which` 0: x, 1: the weight).
+        for (which, analytic) in [(0, &dx), (1, &dw)] {
+            for (i, g) in analytic.iter().enumerate() {
+                let (mut a, mut b) = (xs.clone(), ws.clone());
+                let (mut c, mut d) = (xs.clone(), ws.clone());
+                if which == 0 {
+                    a[i] += eps;
+                    c[i] -= eps;
+                } else {
+                    b[i] += eps;
+                    d[i] -= eps;
+                }
+                let fd = (loss(&a, &b) - loss(&c, &d)) / (2.0 * eps as f64);
+                assert!(
+                    (fd - *g as f64).abs() < 1e-4,
+                    "input {which} [{i}]: {fd} vs {g}"
+                );
+            }
         }
     }
 

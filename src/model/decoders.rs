@@ -17,6 +17,22 @@ use super::layers::{
     WnLinearConfig, leaky_relu,
 };
 
+/// Square weight-normalised convolutions of `shape`, one per entry of `channels` (their
+/// output channels), chained from `c_in` (left at the last output's channels).
+fn convs(channels: &[usize], c_in: &mut usize, shape: ConvShape, device: &Device) -> Vec<WnConv2d> {
+    channels
+        .iter()
+        .map(|&c_out| {
+            let conv = WnConv2dConfig::new([*c_in, c_out], [shape.kernel; 2])
+                .with_stride([shape.stride; 2])
+                .with_padding([shape.padding; 2])
+                .init(device);
+            *c_in = c_out;
+            conv
+        })
+        .collect()
+}
+
 /// Side of the output of upsampling stage `i` (0-based): `BASE_RES * 2^(i + 1)`.
 fn stage_res(i: usize) -> usize {
     BASE_RES << (i + 1)
@@ -38,9 +54,9 @@ fn up(
     } else {
         Bias::PerChannel
     };
-    WnConvTranspose2dConfig::new([c_in, c_out], [UP_KERNEL; 2])
-        .with_stride([UP_STRIDE; 2])
-        .with_padding([UP_PADDING; 2])
+    WnConvTranspose2dConfig::new([c_in, c_out], [UP.kernel; 2])
+        .with_stride([UP.stride; 2])
+        .with_padding([UP.padding; 2])
         .with_bias(bias)
         .init(device)
 }
@@ -135,18 +151,7 @@ impl ViewEncoderConfig {
     /// Initialises the network.
     pub fn init(&self, device: &Device) -> ViewEncoder {
         let mut c_in = PLUECKER_CHANNELS;
-        let convs = self
-            .channels
-            .iter()
-            .map(|&c_out| {
-                let conv = WnConv2dConfig::new([c_in, c_out], [VIEW_KERNEL; 2])
-                    .with_stride([VIEW_STRIDE; 2])
-                    .with_padding([VIEW_PADDING; 2])
-                    .init(device);
-                c_in = c_out;
-                conv
-            })
-            .collect();
+        let convs = convs(&self.channels, &mut c_in, VIEW, device);
         ViewEncoder { convs }
     }
 }
@@ -281,17 +286,7 @@ impl AppearanceDecoderConfig {
         };
         let before_view = ups(&self.before_view, &mut c_in);
         c_in += self.view_channels;
-        let mid = self
-            .mid
-            .iter()
-            .map(|&c_out| {
-                let conv = WnConv2dConfig::new([c_in, c_out], [MID_KERNEL; 2])
-                    .with_padding([MID_PADDING; 2])
-                    .init(device);
-                c_in = c_out;
-                conv
-            })
-            .collect();
+        let mid = convs(&self.mid, &mut c_in, MID, device);
         let after_view = ups(&self.after_view, &mut c_in);
         AppearanceDecoder {
             before_view,

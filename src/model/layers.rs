@@ -18,11 +18,15 @@
 //!
 //! Seed the device (`device.seed(s)`) before `init` for reproducible weights.
 
-use burn::config::Config;
+use std::fmt;
+use std::marker::PhantomData;
+
+use burn::config::{Config, config_to_json};
 use burn::module::{Module, Param};
 use burn::tensor::module::{conv2d, linear};
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Distribution, Tensor};
+use serde::{Deserialize, Serialize};
 
 use super::constants::LEAKY_RELU_SLOPE;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
@@ -62,17 +66,6 @@ pub fn weight_norm<const D: usize>(v: Tensor<D>, g: Tensor<1>, out_dim: usize) -
     v * (g / norm).reshape(shape)
 }
 
-/// `(v, g)` that hold the effective weight `w` itself: `v = w` and `g_o = ||w||` for every
-/// output channel, so that `g * v / ||v||` is `w` again (a folded layer saved and loaded as
-/// an ordinary one computes the same function).
-fn fold_v_g<const D: usize>(w: Tensor<D>, out_dim: usize) -> (Param<Tensor<D>>, Param<Tensor<1>>) {
-    let w = w.detach();
-    let c_out = w.dims()[out_dim];
-    let norm = w.clone().powi_scalar(2).sum().sqrt();
-    let g = Tensor::<1>::ones([c_out], &w.device()) * norm;
-    (Param::from_tensor(w), Param::from_tensor(g))
-}
-
 /// `v ~ U(-b, b)`, `b = 1 / sqrt(fan_in)`, and `g` = `||v||` per output channel.
 fn init_v_g<const D: usize>(
     shape: [usize; D],
@@ -85,6 +78,43 @@ fn init_v_g<const D: usize>(
     let norm = v.clone().powi_scalar(2).sum().sqrt();
     let g = (Tensor::<1>::ones([shape[out_dim]], device) * norm).detach();
     (Param::from_tensor(v), Param::from_tensor(g))
+}
+
+// The weight-norm building block of the three layers. Each layer keeps `v`, `g` and `folded`
+// as fields of its own rather than in a nested module, because saved records (`avatar.bpk`)
+// are keyed by field paths (`linear.v`, not `linear.wn.v`) and records written before this
+// block existed must keep loading (the test `records_saved_by_earlier_code_load`); the layers'
+// `effective_weight` and `fold` are these two functions on those fields.
+
+/// The effective weight `g * v / ||v||` ([`weight_norm`], `g` along dimension `out_dim` of
+/// `v`), or `v` itself once folded.
+fn effective_weight<const D: usize>(
+    v: &Param<Tensor<D>>,
+    g: &Param<Tensor<1>>,
+    folded: bool,
+    out_dim: usize,
+) -> Tensor<D> {
+    if folded {
+        return v.val();
+    }
+    weight_norm(v.val(), g.val(), out_dim)
+}
+
+/// Folds in place: `v = w` (the effective weight) and `g_o = ||w||` for every output
+/// channel, so that `g * v / ||v||` is `w` again (a folded layer saved and loaded as an
+/// ordinary one computes the same function), and `folded` tells forward passes to skip the
+/// norm.
+fn fold<const D: usize>(
+    v: &mut Param<Tensor<D>>,
+    g: &mut Param<Tensor<1>>,
+    folded: &mut bool,
+    out_dim: usize,
+) {
+    let w = effective_weight(v, g, *folded, out_dim).detach();
+    let norm = w.clone().powi_scalar(2).sum().sqrt();
+    *g = Param::from_tensor(Tensor::<1>::ones([w.dims()[out_dim]], &w.device()) * norm);
+    *v = Param::from_tensor(w);
+    *folded = true;
 }
 
 fn uniform_bias(n: usize, fan_in: usize, device: &Device) -> Param<Tensor<1>> {
@@ -158,7 +188,12 @@ pub struct WnLinear {
 impl WnLinearConfig {
     /// Initialises the layer (see the module docs for the distributions).
     pub fn init(&self, device: &Device) -> WnLinear {
-        let (v, g) = init_v_g([self.d_output, self.d_input], 0, self.d_input, device);
+        let (v, g) = init_v_g(
+            [self.d_output, self.d_input],
+            WnLinear::OUT_DIM,
+            self.d_input,
+            device,
+        );
         let bias = self
             .bias
             .then(|| uniform_bias(self.d_output, self.d_input, device));
@@ -172,24 +207,12 @@ impl WnLinearConfig {
 }
 
 impl WnLinear {
+    /// The dimension of `v` that indexes the output features.
+    const OUT_DIM: usize = 0;
+
     /// The effective weight `g * v / ||v||`, [d_output, d_input].
     pub fn effective_weight(&self) -> Tensor<2> {
-        if self.folded {
-            return self.v.val();
-        }
-        weight_norm(self.v.val(), self.g.val(), 0)
-    }
-
-    /// For inference: stores the effective weight in `v` so that forward passes skip the
-    /// norm (training would then move the weight itself, without the norm: train unfolded).
-    pub fn fold(self) -> Self {
-        let (v, g) = fold_v_g(self.effective_weight(), 0);
-        Self {
-            v,
-            g,
-            folded: true,
-            ..self
-        }
+        effective_weight(&self.v, &self.g, self.folded, Self::OUT_DIM)
     }
 
     /// `y = x w^T + b`.
@@ -204,56 +227,162 @@ impl WnLinear {
             self.bias.as_ref().map(|b| b.val()),
         )
     }
+
+    /// For inference: stores the effective weight in `v` so that forward passes skip the
+    /// norm (training would then move the weight itself, without the norm: train unfolded).
+    pub fn fold(mut self) -> Self {
+        fold(&mut self.v, &mut self.g, &mut self.folded, Self::OUT_DIM);
+        self
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
 
+/// What sets a transposed convolution ([`Transposed`]) apart from a plain one ([`Plain`]): the
+/// layout of the weight and the operation.
+pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
+    /// The layer's name, for messages.
+    const NAME: &'static str;
+
+    /// The dimension of `v` [_, _, k_h, k_w] that indexes the output channels, in PyTorch's
+    /// layouts: 0 for a convolution ([C_out, C_in, k_h, k_w]), 1 for a transposed one
+    /// ([C_in, C_out, k_h, k_w]). `fan_in` is the other one times `k_h k_w`.
+    const OUT_DIM: usize;
+
+    /// The layer's operation, before its untied bias.
+    ///
+    /// # Shapes
+    /// - `x`: [N, C_in, H, W]
+    /// - returns [N, C_out, H_out, W_out]
+    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4>;
+}
+
+/// A plain convolution: `H_out = (H + 2 p - k) / s + 1`.
+#[derive(Clone, Copy, Debug)]
+pub struct Plain;
+
+/// A transposed convolution: `H_out = (H - 1) s - 2 p + k` (the padding is removed from each
+/// side of the full output).
+#[derive(Clone, Copy, Debug)]
+pub struct Transposed;
+
+impl ConvKind for Plain {
+    const NAME: &'static str = "WnConv2d";
+    const OUT_DIM: usize = 0;
+
+    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
+        let options = ConvOptions::new(layer.stride, layer.padding, [1, 1], 1);
+        let bias = layer.bias.as_ref().map(|b| b.val());
+        conv2d(x, layer.effective_weight(), bias, options)
+    }
+}
+
+impl ConvKind for Transposed {
+    const NAME: &'static str = "WnConvTranspose2d";
+    const OUT_DIM: usize = 1;
+
+    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
+        let p = ConvTParams {
+            stride: layer.stride,
+            padding: layer.padding,
+        };
+        let y = conv_transpose2d(x, layer.effective_weight(), p);
+        match &layer.bias {
+            Some(b) => y + b.val().reshape([1, -1, 1, 1]),
+            None => y,
+        }
+    }
+}
+
 /// Configuration of a [`WnConv2d`].
-#[derive(Config, Debug)]
-pub struct WnConv2dConfig {
+pub type WnConv2dConfig = WnConvConfig<Plain>;
+/// Configuration of a [`WnConvTranspose2d`].
+pub type WnConvTranspose2dConfig = WnConvConfig<Transposed>;
+/// Weight-normalised 2D convolution.
+pub type WnConv2d = WnConv<Plain>;
+/// Weight-normalised 2D transposed convolution.
+pub type WnConvTranspose2d = WnConv<Transposed>;
+
+fn unit_stride() -> [usize; 2] {
+    [1, 1]
+}
+
+fn per_channel() -> Bias {
+    Bias::PerChannel
+}
+
+/// Configuration of a [`WnConv`] ([`WnConv2dConfig`], [`WnConvTranspose2dConfig`]); written
+/// out rather than derived, as `#[derive(Config)]` takes no type parameters.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(bound = "")]
+pub struct WnConvConfig<K: ConvKind> {
     /// Input and output channels.
     pub channels: [usize; 2],
     /// Kernel height and width.
     pub kernel_size: [usize; 2],
-    /// Stride.
-    #[config(default = "[1, 1]")]
+    /// Stride; `[1, 1]` unless set.
+    #[serde(default = "unit_stride")]
     pub stride: [usize; 2],
-    /// Zero padding on each side.
-    #[config(default = "[0, 0]")]
+    /// Zero padding on each side (a transposed convolution removes it from each side of the
+    /// full output); `[0, 0]` unless set.
+    #[serde(default)]
     pub padding: [usize; 2],
-    /// The bias.
-    #[config(default = "Bias::PerChannel")]
+    /// The bias; [`Bias::PerChannel`] unless set.
+    #[serde(default = "per_channel")]
     pub bias: Bias,
+    /// Plain or transposed.
+    #[serde(skip)]
+    pub kind: PhantomData<K>,
 }
 
-/// Weight-normalised 2D convolution.
-#[derive(Module, Debug)]
-pub struct WnConv2d {
-    /// Direction `v`, [C_out, C_in, k_h, k_w].
-    pub v: Param<Tensor<4>>,
-    /// Magnitude per output channel, `[C_out]`.
-    pub g: Param<Tensor<1>>,
-    /// Whether `v` already holds the effective weight ([`Self::fold`]); not saved.
-    pub folded: bool,
-    /// Per-channel bias, `[C_out]`.
-    pub bias: Option<Param<Tensor<1>>>,
-    /// Untied bias, [C_out, H_out, W_out].
-    pub untied_bias: Option<Param<Tensor<3>>>,
-    /// Stride.
-    pub stride: [usize; 2],
-    /// Zero padding on each side.
-    pub padding: [usize; 2],
+impl<K: ConvKind> Config for WnConvConfig<K> {}
+
+impl<K: ConvKind> fmt::Display for WnConvConfig<K> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&config_to_json(self))
+    }
 }
 
-impl WnConv2dConfig {
+impl<K: ConvKind> WnConvConfig<K> {
+    /// Stride 1, no padding, a per-channel bias.
+    pub fn new(channels: [usize; 2], kernel_size: [usize; 2]) -> Self {
+        Self {
+            channels,
+            kernel_size,
+            stride: unit_stride(),
+            padding: [0, 0],
+            bias: per_channel(),
+            kind: PhantomData,
+        }
+    }
+
+    /// Sets the stride.
+    pub fn with_stride(self, stride: [usize; 2]) -> Self {
+        Self { stride, ..self }
+    }
+
+    /// Sets the padding.
+    pub fn with_padding(self, padding: [usize; 2]) -> Self {
+        Self { padding, ..self }
+    }
+
+    /// Sets the bias.
+    pub fn with_bias(self, bias: Bias) -> Self {
+        Self { bias, ..self }
+    }
+
     /// Initialises the layer (see the module docs for the distributions).
-    pub fn init(&self, device: &Device) -> WnConv2d {
+    pub fn init(&self, device: &Device) -> WnConv<K> {
         let [c_in, c_out] = self.channels;
         let [kh, kw] = self.kernel_size;
-        let fan_in = c_in * kh * kw;
-        let (v, g) = init_v_g([c_out, c_in, kh, kw], 0, fan_in, device);
+        let shape = match K::OUT_DIM {
+            0 => [c_out, c_in, kh, kw],
+            _ => [c_in, c_out, kh, kw],
+        };
+        let fan_in = shape[1] * kh * kw;
+        let (v, g) = init_v_g(shape, K::OUT_DIM, fan_in, device);
         let (bias, untied_bias) = init_bias(&self.bias, c_out, fan_in, device);
-        WnConv2d {
+        WnConv {
             v,
             g,
             folded: false,
@@ -261,73 +390,20 @@ impl WnConv2dConfig {
             untied_bias,
             stride: self.stride,
             padding: self.padding,
+            kind: PhantomData,
         }
     }
 }
 
-impl WnConv2d {
-    /// The effective weight `g * v / ||v||`, [C_out, C_in, k_h, k_w].
-    pub fn effective_weight(&self) -> Tensor<4> {
-        if self.folded {
-            return self.v.val();
-        }
-        weight_norm(self.v.val(), self.g.val(), 0)
-    }
-
-    /// For inference: stores the effective weight in `v` so that forward passes skip the
-    /// norm (training would then move the weight itself, without the norm: train unfolded).
-    pub fn fold(self) -> Self {
-        let (v, g) = fold_v_g(self.effective_weight(), 0);
-        Self {
-            v,
-            g,
-            folded: true,
-            ..self
-        }
-    }
-
-    /// Convolution with the effective weight, plus the bias.
-    ///
-    /// # Shapes
-    /// - `x`: [N, C_in, H, W]
-    /// - returns [N, C_out, H_out, W_out] with `H_out = (H + 2 p - k) / s + 1`
-    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let y = conv2d(
-            x,
-            self.effective_weight(),
-            self.bias.as_ref().map(|b| b.val()),
-            ConvOptions::new(self.stride, self.padding, [1, 1], 1),
-        );
-        add_untied(y, &self.untied_bias, "WnConv2d")
-    }
-}
-
-// ---------------------------------------------------------------------------------------------
-
-/// Configuration of a [`WnConvTranspose2d`].
-#[derive(Config, Debug)]
-pub struct WnConvTranspose2dConfig {
-    /// Input and output channels.
-    pub channels: [usize; 2],
-    /// Kernel height and width.
-    pub kernel_size: [usize; 2],
-    /// Stride.
-    #[config(default = "[1, 1]")]
-    pub stride: [usize; 2],
-    /// Padding (removed from each side of the full output).
-    #[config(default = "[0, 0]")]
-    pub padding: [usize; 2],
-    /// The bias.
-    #[config(default = "Bias::PerChannel")]
-    pub bias: Bias,
-}
-
-/// Weight-normalised 2D transposed convolution.
+/// Weight-normalised 2D convolution, plain ([`WnConv2d`]) or transposed
+/// ([`WnConvTranspose2d`]).
 #[derive(Module, Debug)]
-pub struct WnConvTranspose2d {
-    /// Direction `v`, [C_in, C_out, k_h, k_w] (PyTorch's layout for transposed convolutions).
+pub struct WnConv<K: ConvKind> {
+    /// Direction `v`: [C_out, C_in, k_h, k_w], or [C_in, C_out, k_h, k_w] for a transposed
+    /// convolution (PyTorch's layouts; see [`ConvKind::OUT_DIM`]).
     pub v: Param<Tensor<4>>,
-    /// Magnitude per output channel, `[C_out]` (broadcast along dimension 1 of `v`).
+    /// Magnitude per output channel, `[C_out]` (broadcast along dimension
+    /// [`ConvKind::OUT_DIM`] of `v`).
     pub g: Param<Tensor<1>>,
     /// Whether `v` already holds the effective weight ([`Self::fold`]); not saved.
     pub folded: bool,
@@ -339,71 +415,51 @@ pub struct WnConvTranspose2d {
     pub stride: [usize; 2],
     /// Padding.
     pub padding: [usize; 2],
+    /// Plain or transposed; not saved.
+    #[module(skip)]
+    pub kind: PhantomData<K>,
 }
 
-impl WnConvTranspose2dConfig {
-    /// Initialises the layer (see the module docs for the distributions).
-    pub fn init(&self, device: &Device) -> WnConvTranspose2d {
-        let [c_in, c_out] = self.channels;
-        let [kh, kw] = self.kernel_size;
-        let fan_in = c_out * kh * kw;
-        let (v, g) = init_v_g([c_in, c_out, kh, kw], 1, fan_in, device);
-        let (bias, untied_bias) = init_bias(&self.bias, c_out, fan_in, device);
-        WnConvTranspose2d {
-            v,
-            g,
-            folded: false,
-            bias,
-            untied_bias,
-            stride: self.stride,
-            padding: self.padding,
-        }
-    }
-}
+impl<K: ConvKind> WnConv<K> {
+    /// The dimension of `v` that indexes the output channels.
+    const OUT_DIM: usize = K::OUT_DIM;
 
-impl WnConvTranspose2d {
-    /// The effective weight `g * v / ||v||`, [C_in, C_out, k_h, k_w].
+    /// The effective weight `g * v / ||v||`, in the layout of `v`.
     pub fn effective_weight(&self) -> Tensor<4> {
-        if self.folded {
-            return self.v.val();
-        }
-        weight_norm(self.v.val(), self.g.val(), 1)
+        effective_weight(&self.v, &self.g, self.folded, Self::OUT_DIM)
     }
 
     /// For inference: stores the effective weight in `v` so that forward passes skip the
     /// norm (training would then move the weight itself, without the norm: train unfolded).
-    pub fn fold(self) -> Self {
-        let (v, g) = fold_v_g(self.effective_weight(), 1);
-        Self {
-            v,
-            g,
-            folded: true,
-            ..self
-        }
+    pub fn fold(mut self) -> Self {
+        fold(&mut self.v, &mut self.g, &mut self.folded, Self::OUT_DIM);
+        self
     }
 
-    /// Transposed convolution with the effective weight, plus the bias.
+    /// The convolution with the effective weight, plus the bias.
     ///
     /// # Shapes
     /// - `x`: [N, C_in, H, W]
-    /// - returns [N, C_out, H_out, W_out] with `H_out = (H - 1) s - 2 p + k`
+    /// - returns [N, C_out, H_out, W_out] ([`Plain`] and [`Transposed`] give `H_out`)
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let p = ConvTParams {
-            stride: self.stride,
-            padding: self.padding,
-        };
-        let mut y = conv_transpose2d(x, self.effective_weight(), p);
-        if let Some(b) = &self.bias {
-            y = y + b.val().reshape([1, -1, 1, 1]);
-        }
-        add_untied(y, &self.untied_bias, "WnConvTranspose2d")
+        add_untied(K::apply(x, self), &self.untied_bias, K::NAME)
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use std::path::Path;
+
     use super::*;
+    use crate::io::npz::Npz;
     use burn::tensor::TensorData;
+
+    #[allow(deprecated)]
+    fn device() -> Device {
+        let d = Device::ndarray();
+        d.seed(11);
+        d
+    }
 
     fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
         t.into_data().iter::<f32>().collect()
@@ -411,17 +467,7 @@ mod tests {
 
     fn max_diff(a: &[f32], b: &[f32]) -> f32 {
         assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0, f32::max)
-    }
-
-    #[allow(deprecated)]
-    fn device() -> Device {
-        let d = Device::ndarray();
-        d.seed(11);
-        d
+        a.iter().zip(b).fold(0.0, |m, (x, y)| m.max((x - y).abs()))
     }
 
     fn input(shape: [usize; 4], device: &Device) -> Tensor<4> {
@@ -431,6 +477,35 @@ mod tests {
     /// Random magnitudes in [0.5, 2] (so that per-channel behaviour is visible).
     fn random_g(n: usize, device: &Device) -> Param<Tensor<1>> {
         Param::from_tensor(Tensor::random([n], Distribution::Uniform(0.5, 2.0), device))
+    }
+
+    /// A transposed convolution k4 s2 p1 with an untied bias [C_out, H_out, W_out].
+    fn upsampler(
+        channels: [usize; 2],
+        [height, width]: [usize; 2],
+        d: &Device,
+    ) -> WnConvTranspose2d {
+        WnConvTranspose2dConfig::new(channels, [4, 4])
+            .with_stride([2, 2])
+            .with_padding([1, 1])
+            .with_bias(Bias::Untied { height, width })
+            .init(d)
+    }
+
+    /// One layer of each type with random magnitudes: a convolution 3 -> 4 (k3 p1), a
+    /// transposed convolution 3 -> 2 (k4 s2 p1, an untied bias for 5 x 5 inputs) and a linear
+    /// layer 6 -> 5, with an input [3, 6] for the linear layer.
+    fn random_layers(d: &Device) -> (WnConv2d, WnConvTranspose2d, WnLinear, Tensor<2>) {
+        let mut conv = WnConv2dConfig::new([3, 4], [3, 3])
+            .with_padding([1, 1])
+            .init(d);
+        conv.g = random_g(4, d);
+        let mut up = upsampler([3, 2], [10, 10], d);
+        up.g = random_g(2, d);
+        let mut lin = WnLinearConfig::new(6, 5).init(d);
+        lin.g = random_g(5, d);
+        let xl = Tensor::<2>::random([3, 6], Distribution::Uniform(-1.0, 1.0), d);
+        (conv, up, lin, xl)
     }
 
     #[test]
@@ -460,30 +535,15 @@ mod tests {
     fn scaling_v_leaves_outputs_unchanged() {
         let d = device();
         let x = input([2, 3, 5, 5], &d);
-        let mut conv = WnConv2dConfig::new([3, 4], [3, 3])
-            .with_padding([1, 1])
-            .init(&d);
-        conv.g = random_g(4, &d);
+        let (mut conv, mut up, mut lin, xl) = random_layers(&d);
         let y0 = host(conv.forward(x.clone()));
         conv.v = Param::from_tensor(conv.v.val() * 7.5);
         assert!(max_diff(&y0, &host(conv.forward(x.clone()))) < 1e-5);
 
-        let mut up = WnConvTranspose2dConfig::new([3, 2], [4, 4])
-            .with_stride([2, 2])
-            .with_padding([1, 1])
-            .with_bias(Bias::Untied {
-                height: 10,
-                width: 10,
-            })
-            .init(&d);
-        up.g = random_g(2, &d);
         let y0 = host(up.forward(x.clone()));
         up.v = Param::from_tensor(up.v.val() * 0.03);
         assert!(max_diff(&y0, &host(up.forward(x))) < 1e-5);
 
-        let mut lin = WnLinearConfig::new(6, 5).init(&d);
-        lin.g = random_g(5, &d);
-        let xl = Tensor::<2>::random([3, 6], Distribution::Uniform(-1.0, 1.0), &d);
         let y0 = host(lin.forward(xl.clone()));
         lin.v = Param::from_tensor(lin.v.val() * 123.0);
         assert!(max_diff(&y0, &host(lin.forward(xl))) < 1e-4);
@@ -532,18 +592,7 @@ mod tests {
     fn folding_keeps_the_function() {
         let d = device();
         let x = input([2, 3, 5, 5], &d);
-        let mut conv = WnConv2dConfig::new([3, 4], [3, 3])
-            .with_padding([1, 1])
-            .init(&d);
-        conv.g = random_g(4, &d);
-        let mut up = WnConvTranspose2dConfig::new([3, 2], [4, 4])
-            .with_stride([2, 2])
-            .with_padding([1, 1])
-            .init(&d);
-        up.g = random_g(2, &d);
-        let mut lin = WnLinearConfig::new(6, 5).init(&d);
-        lin.g = random_g(5, &d);
-        let xl = Tensor::<2>::random([3, 6], Distribution::Uniform(-1.0, 1.0), &d);
+        let (conv, up, lin, xl) = random_layers(&d);
         let before = [
             host(conv.forward(x.clone())),
             host(up.forward(x.clone())),
@@ -581,19 +630,59 @@ mod tests {
         }
     }
 
+    /// Records written by the layers before they shared their weight-norm code load into these
+    /// layers and give the outputs saved with them (within 1e-6).
+    ///
+    /// `tests/fixtures/wn_layers` was written by the code of commit c5ec0bb ("Real captures
+    /// read as VHAP and GaussianAvatars mean them"), on ndarray with seed 11, saving each layer
+    /// with `Module::save_file` as `avatar.bpk` is saved (and read here with
+    /// `Module::try_load_file`, as `load_avatar` reads it): a linear layer 4 -> 3 with a bias, a
+    /// convolution 2 -> 3 (k3 p1, per-channel bias) and a transposed convolution 2 -> 3 (k4 s2
+    /// p1, a random untied bias [3, 6, 6]), all with random `g`. `outputs.npz` holds their
+    /// inputs (`x_linear` [2, 4], `x_conv` [2, 2, 3, 3]) and outputs.
+    #[test]
+    fn records_saved_by_earlier_code_load() {
+        let d = device();
+        d.seed(5); // not the writer's seed: the layers start from other values
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/wn_layers");
+        let mut npz = Npz::open(&dir.join("outputs.npz")).expect("outputs.npz");
+        let mut array = |name: &str| npz.floats(name).expect(name);
+        let tensor = |a: crate::io::npy::Array| TensorData::new(a.data, a.shape);
+        let xl = Tensor::<2>::from_data(tensor(array("x_linear")), &d);
+        let x = Tensor::<4>::from_data(tensor(array("x_conv")), &d);
+        // Fresh layers (other random values) of the saved sizes, then the saved records.
+        let load = |file: &str| dir.join(file);
+        let lin = WnLinearConfig::new(4, 3)
+            .init(&d)
+            .try_load_file(load("linear.bpk"))
+            .expect("linear.bpk");
+        let conv = WnConv2dConfig::new([2, 3], [3, 3])
+            .with_padding([1, 1])
+            .init(&d)
+            .try_load_file(load("conv2d.bpk"))
+            .expect("conv2d.bpk");
+        let up = upsampler([2, 3], [6, 6], &d)
+            .try_load_file(load("conv_transpose2d.bpk"))
+            .expect("conv_transpose2d.bpk");
+        assert!(!lin.folded && !conv.folded && !up.folded);
+        let outputs = [
+            ("linear", host(lin.forward(xl))),
+            ("conv2d", host(conv.forward(x.clone()))),
+            ("conv_transpose2d", host(up.forward(x))),
+        ];
+        for (name, y) in outputs {
+            let expected = array(name).data;
+            let diff = max_diff(&y, &expected);
+            assert!(diff < 1e-6, "{name}: {diff}");
+        }
+    }
+
     #[test]
     fn untied_and_per_channel_biases_broadcast() {
         let d = device();
         let x = input([3, 2, 4, 4], &d);
         // With g = 0 the output is the bias alone.
-        let mut up = WnConvTranspose2dConfig::new([2, 2], [4, 4])
-            .with_stride([2, 2])
-            .with_padding([1, 1])
-            .with_bias(Bias::Untied {
-                height: 8,
-                width: 8,
-            })
-            .init(&d);
+        let mut up = upsampler([2, 2], [8, 8], &d);
         up.g = Param::from_tensor(Tensor::zeros([2], &d));
         let bias: Vec<f32> = (0..2 * 8 * 8).map(|k| k as f32 * 0.01 - 0.3).collect();
         up.untied_bias = Some(Param::from_tensor(Tensor::from_data(
@@ -625,14 +714,7 @@ mod tests {
     #[should_panic(expected = "only runs at the resolution")]
     fn untied_bias_rejects_another_resolution() {
         let d = device();
-        let up = WnConvTranspose2dConfig::new([2, 2], [4, 4])
-            .with_stride([2, 2])
-            .with_padding([1, 1])
-            .with_bias(Bias::Untied {
-                height: 8,
-                width: 8,
-            })
-            .init(&d);
+        let up = upsampler([2, 2], [8, 8], &d);
         let _ = up.forward(input([1, 2, 8, 8], &d));
     }
 }
