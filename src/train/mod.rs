@@ -21,6 +21,7 @@
 pub mod config;
 pub mod constants;
 pub mod loader;
+pub mod lock;
 pub mod loss;
 pub mod metrics;
 pub mod progress;
@@ -211,6 +212,8 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     let avatar_config: AvatarConfig = config.avatar()?;
     let out = &options.out;
     let ckpt_dir = out.join(files::CHECKPOINTS);
+    // One run per folder at a time, for the run's whole life (crate::train::lock).
+    let _lock = lock::RunLock::acquire(out)?;
 
     // Resume: the saved config must describe the same run.
     let checkpoint = if options.resume {
