@@ -418,38 +418,47 @@ fn host_conv_t_backward<H: HostIo>(
     }
 }
 
-/// This module's backward on the host (gemm + im2col), for the CPU backends.
-macro_rules! host_backward {
-    () => {
-        fn conv_t_backward(
-            x: FloatTensor<Self>,
-            weight: FloatTensor<Self>,
-            grad_out: FloatTensor<Self>,
-            p: ConvTParams,
-        ) -> ConvTGradients<Self> {
-            host_conv_t_backward::<Self>(x, weight, grad_out, p)
-        }
-    };
+/// The CPU backends: this module's backward on the host (gemm + im2col) and, where
+/// [`HostConvT::HOST_FORWARD`], its forward too.
+pub trait HostConvT: HostIo {
+    /// Whether the forward pass is ours rather than the backend's own `conv_transpose2d`.
+    const HOST_FORWARD: bool;
 }
 
 /// burn-ndarray's own `conv_transpose2d` is two orders of magnitude slower than the column
 /// formulation here (942 ms against 4 ms for one `cpu` decoder layer): both passes are ours.
-impl ConvTBackend for NdArray {
+impl HostConvT for NdArray {
+    const HOST_FORWARD: bool = true;
+}
+
+/// burn-flex's tiled forward is faster than ours (96 ms against 114 ms for the `paper`
+/// decoders), so flex keeps it; the backward is ours.
+impl HostConvT for Flex {
+    const HOST_FORWARD: bool = false;
+}
+
+impl<H: HostConvT> ConvTBackend for H {
     fn conv_t(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
         p: ConvTParams,
     ) -> FloatTensor<Self> {
-        host_conv_t::<Self>(x, weight, p)
+        if H::HOST_FORWARD {
+            host_conv_t::<Self>(x, weight, p)
+        } else {
+            use burn::backend::ops::ModuleOps;
+            <Self as ModuleOps<Self>>::conv_transpose2d(x, weight, None, p.options())
+        }
     }
 
-    host_backward!();
-}
-
-/// burn-flex's tiled forward is faster than ours (96 ms against 114 ms for the `paper`
-/// decoders), so flex keeps it; the backward is ours.
-impl ConvTBackend for Flex {
-    host_backward!();
+    fn conv_t_backward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad_out: FloatTensor<Self>,
+        p: ConvTParams,
+    ) -> ConvTGradients<Self> {
+        host_conv_t_backward::<Self>(x, weight, grad_out, p)
+    }
 }
 
 /// The GPU backend keeps burn's CubeCL passes.
