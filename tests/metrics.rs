@@ -291,9 +291,9 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
-/// Writes a 24x20 reference and a noisy copy; returns their paths.
+/// Writes a 40x32 reference (large enough for LPIPS) and a noisy copy; returns their paths.
 fn write_pair(dir: &Path) -> (PathBuf, PathBuf) {
-    let (w, h) = (24, 20);
+    let (w, h) = (40, 32);
     let r = random(9, w * h * 3);
     let i: Vec<f32> = r
         .iter()

@@ -73,6 +73,7 @@ pub fn score(
         lpips_alex_unscaled_inputs: None,
     };
     if lpips {
+        crate::metrics::lpips::check_size(i.height, i.width, &image.display().to_string())?;
         let alex = Lpips::load(Net::AlexNet, &device)?;
         let vgg = Lpips::load(Net::Vgg16, &device)?;
         s.lpips_alex = Some(first(alex.distance(a.clone(), b.clone())));
@@ -87,4 +88,24 @@ pub fn run(a: MetricsArgs) -> anyhow::Result<()> {
     let s = score(&a.reference, &a.image, !a.no_lpips, a.backend)?;
     println!("{}", serde_json::to_string(&s)?);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn images_too_small_for_lpips_are_an_error_not_a_panic() {
+        let dir = std::env::temp_dir().join(format!("texavatars-metrics-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let p = dir.join("small.png");
+        image::RgbImage::new(30, 40).save(&p).expect("png");
+        let e = score(&p, &p, true, BackendKind::Cpu)
+            .expect_err("too small")
+            .to_string();
+        assert!(e.contains("small.png") && e.contains("31"), "{e}");
+        let s = score(&p, &p, false, BackendKind::Cpu).expect("without LPIPS");
+        assert!(s.lpips_alex.is_none());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -77,6 +77,9 @@ impl Scorer {
             ))
         };
         let (a, b) = (t(image), t(reference));
+        if self.alex.is_some() || self.vgg.is_some() {
+            crate::metrics::lpips::check_size(height, width, "evaluation image")?;
+        }
         let first = |x| metrics::to_host(x)[0];
         Ok(Scores {
             psnr: first(metrics::psnr(a.clone(), b.clone())),

@@ -18,10 +18,32 @@ use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::metrics::constants::{LPIPS_EPS, LPIPS_SCALE, LPIPS_SHIFT};
 use crate::metrics::nets::{Features, Net, frozen};
 use crate::metrics::weights::{self, HostWeights};
+
+/// The smallest image side LPIPS can score. AlexNet's fifth tap needs one pixel after its
+/// second max pool: conv1 (kernel 11, stride 4, padding 2) gives `(n - 7) / 4 + 1`, each pool
+/// (kernel 3, stride 2) `(m - 3) / 2 + 1`, and the 5x5 / 3x3 convolutions keep the size, so
+/// `n >= 31` (VGG16's four 2x2 pools need only 16).
+pub const MIN_SIDE: usize = 31;
+
+/// Fails, naming `what`, when a `height` x `width` image is too small for LPIPS
+/// ([`MIN_SIDE`]) instead of letting the convolutions panic.
+pub fn check_size(height: usize, width: usize, what: &str) -> Result<()> {
+    if height.min(width) < MIN_SIDE {
+        return Err(Error::invalid(
+            what,
+            "size",
+            format!(
+                "{width}x{height} pixels: LPIPS needs at least {MIN_SIDE} on each side \
+                 (score without it: --no-lpips)"
+            ),
+        ));
+    }
+    Ok(())
+}
 
 /// LPIPS v0.1 with its backbone and linear layers.
 #[derive(Module, Debug)]
