@@ -54,10 +54,13 @@ impl Identity {
     /// The shape and static offsets of a FLAME parameter file (one frame, or the shared
     /// arrays of a multi-frame file).
     pub fn load(path: &Path) -> Result<Self> {
-        let p = HeadPose::load_npz_frames(path)?.swap_remove(0);
+        // Only the shared arrays: a tracked sequence's per-frame arrays are not read.
+        let mut z = crate::io::npz::Npz::open(path)?;
+        let (shape, static_offset) =
+            crate::head::params::subject(&mut z, &path.display().to_string())?;
         Ok(Identity {
-            shape: p.shape,
-            static_offset: p.static_offset,
+            shape,
+            static_offset,
             source: path.to_path_buf(),
         })
     }

@@ -36,6 +36,41 @@ fn rows(z: &mut Npz, what: &str, name: &str, t: usize, n: usize) -> Result<Vec<f
     Ok(a.data)
 }
 
+/// Per-vertex static offsets, `[V]`.
+pub type StaticOffset = Vec<[f32; 3]>;
+
+/// The subject's arrays of a parameter file, shared by all its frames: `shape` (S,) or
+/// (1, S) and the optional `static_offset` (1, V, 3).
+pub fn subject(z: &mut Npz, what: &str) -> Result<(Vec<f32>, Option<StaticOffset>)> {
+    let static_offset = if z.has("static_offset") {
+        let a = z.floats("static_offset")?;
+        if a.shape.len() != 3 || a.shape[0] != 1 || a.shape[2] != 3 {
+            return Err(Error::invalid(
+                what,
+                "static_offset",
+                format!("shape {:?}, expected (1, V, 3)", a.shape),
+            ));
+        }
+        Some(
+            a.data
+                .chunks(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect::<Vec<_>>(),
+        )
+    } else {
+        None
+    };
+    let shape = z.floats("shape")?;
+    if shape.shape.len() > 1 && shape.shape[..shape.shape.len() - 1].iter().any(|&d| d != 1) {
+        return Err(Error::invalid(
+            what,
+            "shape",
+            format!("shape {:?}, expected (S,) or (1, S)", shape.shape),
+        ));
+    }
+    Ok((shape.data, static_offset))
+}
+
 fn fixed<const N: usize>(row: &[f32]) -> [f32; N] {
     std::array::from_fn(|i| row[i])
 }
@@ -63,24 +98,7 @@ impl HeadPose {
     pub fn load_npz_frames(path: &Path) -> Result<Vec<Self>> {
         let what = path.display().to_string();
         let mut z = Npz::open(path)?;
-        let static_offset = if z.has("static_offset") {
-            let a = z.floats("static_offset")?;
-            if a.shape.len() != 3 || a.shape[0] != 1 || a.shape[2] != 3 {
-                return Err(Error::invalid(
-                    &what,
-                    "static_offset",
-                    format!("shape {:?}, expected (1, V, 3)", a.shape),
-                ));
-            }
-            Some(
-                a.data
-                    .chunks(3)
-                    .map(|c| [c[0], c[1], c[2]])
-                    .collect::<Vec<_>>(),
-            )
-        } else {
-            None
-        };
+        let (shape, static_offset) = subject(&mut z, &what)?;
         let expr = z.floats("expr")?;
         let (t, e) = match expr.shape.as_slice() {
             [t, e] => (*t, *e),
@@ -96,14 +114,6 @@ impl HeadPose {
         if t == 0 {
             return Err(Error::invalid(&what, "expr", "no frames (T = 0)"));
         }
-        let shape = z.floats("shape")?;
-        if shape.shape.len() > 1 && shape.shape[..shape.shape.len() - 1].iter().any(|&d| d != 1) {
-            return Err(Error::invalid(
-                &what,
-                "shape",
-                format!("shape {:?}, expected (S,) or (1, S)", shape.shape),
-            ));
-        }
         let rotation = rows(&mut z, &what, "rotation", t, 3)?;
         let neck = rows(&mut z, &what, "neck_pose", t, 3)?;
         let jaw = rows(&mut z, &what, "jaw_pose", t, 3)?;
@@ -112,7 +122,7 @@ impl HeadPose {
         (0..t)
             .map(|i| {
                 let pose = HeadPose {
-                    shape: shape.data.clone(),
+                    shape: shape.clone(),
                     expr: expr.data[i * e..(i + 1) * e].to_vec(),
                     rotation: fixed(&rotation[i * 3..]),
                     neck: fixed(&neck[i * 3..]),
