@@ -66,12 +66,12 @@ impl ConvTParams {
     }
 }
 
-/// Gradients of a transposed convolution's two inputs.
+/// A transposed convolution's two tensors: its inputs, or their gradients.
 ///
 /// # Shapes
 /// - `x`: [N, C_in, H, W]; `weight`: [C_in, C_out, k_h, k_w]
 #[derive(ExtensionType, Debug, Clone)]
-pub struct ConvTGradients<B: Backend> {
+pub struct ConvTPair<B: Backend> {
     pub x: FloatTensor<B>,
     pub weight: FloatTensor<B>,
 }
@@ -79,38 +79,33 @@ pub struct ConvTGradients<B: Backend> {
 /// Backends with the transposed convolution of this module.
 #[backend_extension(NdArray, Flex, Cube, Autodiff)]
 pub trait ConvTBackend: Backend {
-    /// `x` `[N, C_in, H, W]`, `weight` `[C_in, C_out, k_h, k_w]` (PyTorch's layout) →
+    /// `xw.x` `[N, C_in, H, W]`, `xw.weight` `[C_in, C_out, k_h, k_w]` (PyTorch's layout) →
     /// `[N, C_out, H_out, W_out]`. Default: the backend's own `conv_transpose2d`.
-    fn conv_t(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> FloatTensor<Self> {
+    fn conv_t(#[extension_type] xw: ConvTPair<Self>, p: ConvTParams) -> FloatTensor<Self> {
         use burn::backend::ops::ModuleOps;
-        <Self as ModuleOps<Self>>::conv_transpose2d(x, weight, None, p.options())
+        <Self as ModuleOps<Self>>::conv_transpose2d(xw.x, xw.weight, None, p.options())
     }
 
     /// Backward: `grad_out` `[N, C_out, H_out, W_out]` → gradients of `x` and `weight`.
     /// Default: the backend's own input and weight backward passes.
     fn conv_t_backward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
+        #[extension_type] xw: ConvTPair<Self>,
         grad_out: FloatTensor<Self>,
         p: ConvTParams,
-    ) -> ConvTGradients<Self> {
+    ) -> ConvTPair<Self> {
         use burn::backend::ops::ModuleOps;
-        let dx = <Self as ModuleOps<Self>>::conv_transpose2d_x_backward(
-            weight.clone(),
-            grad_out.clone(),
-            p.options(),
-        );
-        let dw = <Self as ModuleOps<Self>>::conv_transpose2d_weight_backward(
-            x,
-            weight,
-            grad_out,
-            p.options(),
-        );
-        ConvTGradients { x: dx, weight: dw }
+        let ConvTPair { x, weight } = xw;
+        let o = p.options();
+        ConvTPair {
+            x: <Self as ModuleOps<Self>>::conv_transpose2d_x_backward(
+                weight.clone(),
+                grad_out.clone(),
+                o.clone(),
+            ),
+            weight: <Self as ModuleOps<Self>>::conv_transpose2d_weight_backward(
+                x, weight, grad_out, o,
+            ),
+        }
     }
 }
 
@@ -135,11 +130,11 @@ pub fn conv_transpose2d(x: Tensor<4>, weight: Tensor<4>, p: ConvTParams) -> Tens
         "conv_transpose2d: padding {:?} leaves no output for a {h}x{w} input and a {kh}x{kw} kernel",
         p.padding
     );
-    Tensor::from_dispatch(<burn::backend::Dispatch as ConvTBackend>::conv_t(
-        x.into_dispatch(),
-        weight.into_dispatch(),
-        p,
-    ))
+    let xw = ConvTPair {
+        x: x.into_dispatch(),
+        weight: weight.into_dispatch(),
+    };
+    Tensor::from_dispatch(<burn::backend::Dispatch as ConvTBackend>::conv_t(xw, p))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -386,11 +381,7 @@ fn host_backward(
     (dx, dw)
 }
 
-fn host_conv_t<H: HostIo>(
-    x: FloatTensor<H>,
-    weight: FloatTensor<H>,
-    p: ConvTParams,
-) -> FloatTensor<H> {
+fn host_conv_t<H: HostIo>(ConvTPair { x, weight }: ConvTPair<H>, p: ConvTParams) -> FloatTensor<H> {
     let device = x.device();
     let d = Dims::new(&x.shape().to_vec(), &weight.shape().to_vec(), &p);
     let out = host_forward(&H::floats(x), &H::floats(weight), d, &p);
@@ -398,11 +389,10 @@ fn host_conv_t<H: HostIo>(
 }
 
 fn host_conv_t_backward<H: HostIo>(
-    x: FloatTensor<H>,
-    weight: FloatTensor<H>,
+    ConvTPair { x, weight }: ConvTPair<H>,
     grad_out: FloatTensor<H>,
     p: ConvTParams,
-) -> ConvTGradients<H> {
+) -> ConvTPair<H> {
     let device = x.device();
     let d = Dims::new(&x.shape().to_vec(), &weight.shape().to_vec(), &p);
     let (dx, dw) = host_backward(
@@ -412,7 +402,7 @@ fn host_conv_t_backward<H: HostIo>(
         d,
         &p,
     );
-    ConvTGradients {
+    ConvTPair {
         x: floats::<H>(dx, &[d.n, d.ci, d.h, d.w], &device),
         weight: floats::<H>(dw, &[d.ci, d.co, d.kh, d.kw], &device),
     }
@@ -438,26 +428,21 @@ impl HostConvT for Flex {
 }
 
 impl<H: HostConvT> ConvTBackend for H {
-    fn conv_t(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> FloatTensor<Self> {
+    fn conv_t(xw: ConvTPair<Self>, p: ConvTParams) -> FloatTensor<Self> {
         if H::HOST_FORWARD {
-            host_conv_t::<Self>(x, weight, p)
+            host_conv_t::<Self>(xw, p)
         } else {
             use burn::backend::ops::ModuleOps;
-            <Self as ModuleOps<Self>>::conv_transpose2d(x, weight, None, p.options())
+            <Self as ModuleOps<Self>>::conv_transpose2d(xw.x, xw.weight, None, p.options())
         }
     }
 
     fn conv_t_backward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
+        xw: ConvTPair<Self>,
         grad_out: FloatTensor<Self>,
         p: ConvTParams,
-    ) -> ConvTGradients<Self> {
-        host_conv_t_backward::<Self>(x, weight, grad_out, p)
+    ) -> ConvTPair<Self> {
+        host_conv_t_backward::<Self>(xw, grad_out, p)
     }
 }
 
@@ -476,7 +461,7 @@ impl<B: Backend + ConvTBackend> Backward<B, 2> for ConvTBackwardOp {
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad_out = grads.consume::<B>(&ops.node);
         let (x, weight, p) = ops.state;
-        let g = B::conv_t_backward(x, weight, grad_out, p);
+        let g = B::conv_t_backward(ConvTPair { x, weight }, grad_out, p);
         let [x_node, weight_node] = ops.parents;
         for (node, grad) in [(x_node, g.x), (weight_node, g.weight)] {
             if let Some(node) = node {
@@ -487,41 +472,36 @@ impl<B: Backend + ConvTBackend> Backward<B, 2> for ConvTBackwardOp {
 }
 
 impl<B: Backend + ConvTBackend, C: CheckpointStrategy> ConvTBackend for Autodiff<B, C> {
-    fn conv_t(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        p: ConvTParams,
-    ) -> FloatTensor<Self> {
+    fn conv_t(ConvTPair { x, weight }: ConvTPair<Self>, p: ConvTParams) -> FloatTensor<Self> {
         let nodes = [x.node(), weight.node()];
+        let inner = ConvTPair {
+            x: x.into_primitive(),
+            weight: weight.into_primitive(),
+        };
         match ConvTBackwardOp
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
         {
             OpsKind::Tracked(prep) => {
-                let (x, weight) = (x.into_primitive(), weight.into_primitive());
-                let out = B::conv_t(x.clone(), weight.clone(), p);
-                prep.finish((x, weight, p), out)
+                let out = B::conv_t(inner.clone(), p);
+                prep.finish((inner.x, inner.weight, p), out)
             }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::conv_t(x.into_primitive(), weight.into_primitive(), p))
-            }
+            OpsKind::UnTracked(prep) => prep.finish(B::conv_t(inner, p)),
         }
     }
 
     fn conv_t_backward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
+        xw: ConvTPair<Self>,
         grad_out: FloatTensor<Self>,
         p: ConvTParams,
-    ) -> ConvTGradients<Self> {
-        let g = B::conv_t_backward(
-            x.into_primitive(),
-            weight.into_primitive(),
-            grad_out.into_primitive(),
-            p,
-        );
-        ConvTGradients {
+    ) -> ConvTPair<Self> {
+        let inner = ConvTPair {
+            x: xw.x.into_primitive(),
+            weight: xw.weight.into_primitive(),
+        };
+        let g = B::conv_t_backward(inner, grad_out.into_primitive(), p);
+        ConvTPair {
             x: Self::from_inner(g.x),
             weight: Self::from_inner(g.weight),
         }

@@ -178,6 +178,14 @@ impl ViewEncoder {
 
 // ---------------------------------------------------------------------------------------------
 
+/// The geometry decoder D_g: transposed convolutions from the 8 x 8 code to the local
+/// geometry maps (offset 3, quaternion 4, log-scale 3, opacity logit 1).
+#[derive(Module, Debug)]
+pub struct GeometryDecoder {
+    /// The transposed convolutions.
+    pub layers: Vec<WnConvTranspose2d>,
+}
+
 /// Configuration of [`GeometryDecoder`].
 #[derive(Config, Debug)]
 pub struct GeometryDecoderConfig {
@@ -189,14 +197,6 @@ pub struct GeometryDecoderConfig {
     /// Untied (per-pixel) biases (the paper) instead of per-channel ones.
     #[config(default = true)]
     pub untied_bias: bool,
-}
-
-/// The geometry decoder D_g: transposed convolutions from the 8 x 8 code to the local
-/// geometry maps (offset 3, quaternion 4, log-scale 3, opacity logit 1).
-#[derive(Module, Debug)]
-pub struct GeometryDecoder {
-    /// The transposed convolutions.
-    pub layers: Vec<WnConvTranspose2d>,
 }
 
 impl GeometryDecoderConfig {
