@@ -72,6 +72,7 @@ fn bench(c: &mut Criterion) {
             weights: LossWeights::default(),
             vgg: None,
             vgg_from: usize::MAX,
+            guard: None,
         },
     });
     let mut optim = optimizer(&config);

@@ -130,6 +130,9 @@ impl Camera {
         {
             return Err(field("world_to_camera", "has a non-finite entry".into()));
         }
+        if let Some(why) = rotation_problem(&self.world_to_camera) {
+            return Err(field("world_to_camera", why));
+        }
         let last = self.world_to_camera[3];
         if last != [0.0, 0.0, 0.0, 1.0] {
             return Err(field(
@@ -138,6 +141,37 @@ impl Camera {
             ));
         }
         Ok(())
+    }
+}
+
+/// Largest deviation of `R^T R` from the identity (and of `det R` from 1) accepted for the
+/// rotation part of a camera matrix: exports store six or more significant digits, so a
+/// real rotation is off by about 1e-6; a scaled, sheared or singular matrix (which renders
+/// nothing, or a distorted head, without an error) by far more.
+pub const ROTATION_TOLERANCE: f32 = 1e-3;
+
+/// Why the upper-left 3x3 of `m` is not a rotation (`None` when it is one, within
+/// [`ROTATION_TOLERANCE`]).
+pub fn rotation_problem(m: &[[f32; 4]; 4]) -> Option<String> {
+    let r = |i: usize, j: usize| f64::from(m[i][j]);
+    let mut worst = 0.0f64;
+    for a in 0..3 {
+        for b in 0..3 {
+            let dot: f64 = (0..3).map(|k| r(k, a) * r(k, b)).sum();
+            worst = worst.max((dot - f64::from(u8::from(a == b))).abs());
+        }
+    }
+    let det = r(0, 0) * (r(1, 1) * r(2, 2) - r(1, 2) * r(2, 1))
+        - r(0, 1) * (r(1, 0) * r(2, 2) - r(1, 2) * r(2, 0))
+        + r(0, 2) * (r(1, 0) * r(2, 1) - r(1, 1) * r(2, 0));
+    let tol = f64::from(ROTATION_TOLERANCE);
+    if worst > tol || (det - 1.0).abs() > tol {
+        Some(format!(
+            "the 3x3 part is not a rotation (|R^T R - I| = {worst:.2e}, det = {det:.4}); \
+             a camera matrix must be a rigid transform"
+        ))
+    } else {
+        None
     }
 }
 
@@ -210,6 +244,17 @@ mod tests {
         let mut c = cam();
         c.world_to_camera[3][0] = 1.0;
         assert!(c.validate("x").is_err());
+        // Singular, scaled and mirrored 3x3 parts are not rotations (issue 15: a singular
+        // camera rotation used to train on blank renders).
+        for (i, j, v) in [(0, 1, 0.0), (1, 1, 2.0), (2, 2, -1.0)] {
+            let mut c = cam();
+            c.world_to_camera[i][j] = v;
+            let e = c.validate("cam.json").unwrap_err().to_string();
+            assert!(
+                e.contains("world_to_camera") && e.contains("not a rotation"),
+                "{e}"
+            );
+        }
     }
 
     #[test]

@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use crate::data::Split;
+use crate::data::{PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::eval::plot::{Figure, Series, line_plot};
@@ -257,6 +257,7 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
             stride: opts.eval_stride,
             panels: 6,
             backend: BackendKind::Flex,
+            paths: PathPolicy::InsideRoot,
         },
         &mut |l| progress(l),
     )?;

@@ -23,6 +23,15 @@ pub enum Error {
         /// What is wrong with it.
         why: String,
     },
+    /// A run stopped by a signal before its end, its work saved; the process exits with
+    /// `128 + signal` (the shell's convention).
+    #[error("{message}")]
+    Stopped {
+        /// The signal's number (2: SIGINT, 15: SIGTERM).
+        signal: usize,
+        /// What was saved and how to resume.
+        message: String,
+    },
 }
 
 impl Error {
@@ -44,6 +53,17 @@ impl Error {
             what: what.into(),
             field: field.into(),
             why: why.into(),
+        }
+    }
+}
+
+impl Error {
+    /// The process exit status this error calls for: `128 + signal` for a stopped run, 1
+    /// otherwise.
+    pub fn exit_code(&self) -> u8 {
+        match self {
+            Error::Stopped { signal, .. } => crate::train::signals::exit_code(*signal),
+            _ => 1,
         }
     }
 }

@@ -30,6 +30,7 @@ pub mod eval;
 pub mod head;
 pub mod io;
 pub mod lift;
+pub mod limits;
 pub mod mesh;
 pub mod metrics;
 pub mod model;

@@ -618,6 +618,10 @@ fn vhap_style_export_is_read_as_the_peers_mean_it() {
         std::fs::create_dir_all(d.join("images")).expect("dir");
         std::fs::create_dir_all(d.join("flame_param")).expect("dir");
         write_arrays(&d.join("flame_param/00000.npz"), &arrays(&seq_pose(seq)));
+        // Each source sequence of a combined export is an export of its own
+        // (`vhap/combine_nerf_datasets.py`, `NeRFDatasetAssembler.combine_dbs` reads
+        // `src_folder / "transforms.json"`); only such siblings may be read through `..`.
+        std::fs::write(d.join("transforms.json"), "{}").expect("json");
         // RGBA: left half transparent (white after compositing), right half opaque red.
         image::RgbaImage::from_fn(w, h, |x, _| {
             if x < w / 2 {
@@ -787,4 +791,77 @@ fn vhap_style_export_is_read_as_the_peers_mean_it() {
         );
     }
     let _ = std::fs::remove_dir_all(&root);
+}
+
+/// `HeadDataset::check_files` reads every frame's headers and every timestep's parameters,
+/// and lists all problems at once (issue 15.5).
+#[test]
+fn check_files_lists_every_broken_frame_before_training() {
+    let fx = Fixture::new("check-files");
+    let ds = fx.open().expect("open");
+    let checked = ds.check_files().expect("a good export passes");
+    assert_eq!((checked.frames, checked.timesteps), (4, 2));
+
+    // Frame 1's image missing, frame 2's image of the wrong size, frame 0's mask cut short
+    // inside its header, timestep 1's parameters not an npz.
+    std::fs::remove_file(fx.path("images/00000_01.png")).expect("rm");
+    image::RgbImage::new(W + 1, H)
+        .save(fx.path("images/00001_00.png"))
+        .expect("png");
+    std::fs::write(fx.path("fg_masks/00000_00.png"), b"\x89PNG\r\n").expect("mask");
+    std::fs::write(fx.path("flame_param/00001.npz"), b"not a zip").expect("npz");
+    let ds = fx
+        .open()
+        .expect("open reads no frame files but the identity's");
+    let e = ds.check_files().expect_err("four problems");
+    assert_names(
+        &e,
+        &[
+            "transforms_train.json",
+            "4 problem(s)",
+            "frames[1].file_path",
+            "00000_01.png",
+            "frames[2].file_path",
+            &format!("{}x{H} pixels, the frame's w x h is {W}x{H}", W + 1),
+            "frames[0].fg_mask_path",
+            "frames[2].flame_param_path",
+            "00001.npz",
+        ],
+    );
+}
+
+/// Files named by a transforms JSON stay inside the dataset root unless allowed; VHAP's
+/// combined exports reach sibling exports through `..` (`vhap/combine_nerf_datasets.py`,
+/// `NeRFDatasetAssembler.combine_dbs`), which stays allowed (issue 15.6).
+#[test]
+fn dataset_paths_stay_inside_the_root_unless_allowed() {
+    let fx = Fixture::new("paths");
+    let json = fx.path("transforms_train.json");
+    let mut t: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("read")).expect("json");
+    t["frames"][1]["file_path"] = json!("../../../../../../etc/passwd");
+    t["frames"][3]["flame_param_path"] = json!("/etc/hostname");
+    std::fs::write(&json, t.to_string()).expect("write");
+    let e = fx.open().expect_err("outside the root");
+    assert_names(
+        &e,
+        &[
+            "2 problem(s)",
+            "frames[1].file_path",
+            "/etc/passwd",
+            "frames[3].flame_param_path",
+            "outside the dataset root",
+            "--allow-outside-paths",
+        ],
+    );
+    // Allowed, the files are read and fail as what they are.
+    let ds = HeadDataset::open_with(
+        &fx.root,
+        Split::Train,
+        fx.model.clone(),
+        texavatars::data::PathPolicy::Anywhere,
+    )
+    .expect("allowed");
+    let e = ds.check_files().expect_err("not a PNG, not an npz");
+    assert_names(&e, &["frames[1].file_path", "frames[3].flame_param_path"]);
 }

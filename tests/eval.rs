@@ -33,6 +33,7 @@ fn trained_avatar_is_scored_on_every_split() {
         stride: 4,
         panels: 1,
         backend: BackendKind::Flex,
+        paths: texavatars::data::PathPolicy::InsideRoot,
     };
     // Before training: a clear error naming the missing file.
     let e = evaluate(&opts, &mut |_| {}).unwrap_err().to_string();
@@ -53,7 +54,9 @@ fn trained_avatar_is_scored_on_every_split() {
             .collect();
         assert_eq!(panels.len(), 1);
     }
-    assert_eq!(lines.len(), 3);
+    // Per split: the up-front check of its files, then its scores.
+    let (checks, scores): (Vec<_>, Vec<_>) = lines.iter().partition(|l| l.contains("checked"));
+    assert_eq!((checks.len(), scores.len()), (3, 3), "{lines:?}");
     assert!(report.table.contains("novel view"));
     let json: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(opts.out.join("metrics.json")).expect("json"),

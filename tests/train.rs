@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 use burn::data::dataloader::DataLoader;
-use burn::module::{Module, ModuleVisitor, Param};
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Device, Gradients, Tensor};
 use texavatars::data::{HeadBatcher, HeadDataset, Split};
 use texavatars::device::BackendKind;
@@ -15,8 +15,8 @@ use texavatars::head::HeadAsset;
 use texavatars::model::{Ablations, Avatar, NetConfig};
 use texavatars::synth::{self, SynthConfig};
 use texavatars::train::{
-    self, AvatarTraining, FrameLoader, LossWeights, Objective, Schedule, TrainBatch, TrainConfig,
-    TrainOptions, files, latest_checkpoint,
+    self, AvatarTraining, FrameLoader, IterationRecord, LossWeights, Objective, Schedule,
+    TrainBatch, TrainConfig, TrainOptions, files, latest_checkpoint,
 };
 
 /// The tiny benchmark: 24 x 32 images, 2 frames per sequence (300 training frames).
@@ -96,6 +96,7 @@ fn no_vgg(avatar: Avatar) -> AvatarTraining {
             weights: LossWeights::default(),
             vgg: None,
             vgg_from: 0,
+            guard: None,
         },
     }
 }
@@ -351,6 +352,7 @@ fn the_frame_order_is_the_same_after_a_resume() {
         per_epoch: 7,
         total: 700,
         batch_size: 1,
+        resume: None,
     };
     let device = Device::flex();
     let frames = |l: &FrameLoader| -> Vec<(usize, usize, usize)> {
@@ -550,4 +552,468 @@ fn an_export_without_a_validation_split_trains_without_validation() {
     let r = train::train(&c, &o).unwrap();
     assert_eq!(r.end_iteration, 2);
     assert!(r.avatar_path.is_file());
+}
+
+/// Every float parameter of `m` as host values, in visiting order.
+fn all_params<M: Module>(m: &M) -> Vec<Vec<f32>> {
+    struct All(Vec<Vec<f32>>);
+    impl ModuleVisitor for All {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            self.0.push(p.val().into_data().iter::<f32>().collect());
+        }
+    }
+    let mut all = All(Vec::new());
+    m.visit(&mut all);
+    all.0
+}
+
+#[test]
+fn a_run_stopped_inside_an_interval_resumes_to_the_same_avatar() {
+    let mut c = tiny_config();
+    c.iterations = 6;
+    c.checkpoint_every = 4;
+    c.val_frames = 0;
+    let straight = train::train(&c, &options(&out_dir("mid-straight"), BackendKind::Flex)).unwrap();
+    assert!(straight.complete);
+
+    // Stopped after 3 iterations: checkpoint 1 holds 0..3, recorded; no avatar yet.
+    let out = out_dir("mid-stopped");
+    let ckpt = out.join(files::CHECKPOINTS);
+    let mut o = options(&out, BackendKind::Flex);
+    o.stop_after = Some(3);
+    let r = train::train(&c, &o).unwrap();
+    assert_eq!(
+        (r.start_iteration, r.end_iteration, r.complete),
+        (0, 3, false)
+    );
+    assert_eq!(latest_checkpoint(&ckpt), Some(1));
+    let rec = IterationRecord::load(&ckpt, 1).unwrap().unwrap();
+    assert_eq!(rec.iteration, 3);
+    assert!(!out.join(files::AVATAR).exists());
+
+    // Resumed and stopped again inside the last interval: 3..5, checkpoint 2 holds 0..5.
+    let mut o = options(&out, BackendKind::Flex);
+    o.resume = true;
+    o.stop_after = Some(2);
+    let r = train::train(&c, &o).unwrap();
+    assert_eq!(
+        (r.start_iteration, r.end_iteration, r.complete),
+        (3, 5, false)
+    );
+    assert_eq!(
+        IterationRecord::load(&ckpt, 2).unwrap().unwrap().iteration,
+        5
+    );
+
+    // Resumed to the end: the same parameters, to the bit, as the uninterrupted run.
+    let mut o = options(&out, BackendKind::Flex);
+    o.resume = true;
+    let r = train::train(&c, &o).unwrap();
+    assert_eq!(
+        (r.start_iteration, r.end_iteration, r.complete),
+        (5, 6, true)
+    );
+    assert!(out.join(files::AVATAR).is_file());
+    assert!(all_params(&r.avatar) == all_params(&straight.avatar));
+}
+
+#[test]
+fn a_diverging_run_stops_naming_the_iteration_and_keeps_its_last_checkpoint() {
+    let mut c = tiny_config();
+    c.iterations = 6;
+    c.checkpoint_every = 1;
+    c.val_frames = 0;
+    // The issue's case: a learning rate of 1e6 and more. Adam's first step moves every
+    // weight by about the learning rate; the next forward pass overflows.
+    c.lr_decoders = 1e30;
+    c.lr_encoders = 1e30;
+    let out = out_dir("nan");
+    let e = train::train(&c, &options(&out, BackendKind::Flex)).unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("iteration 1") && msg.contains("not finite"),
+        "{msg}"
+    );
+    assert!(msg.contains("Loss"), "{msg}");
+    assert!(msg.contains("the last good checkpoint is 1"), "{msg}");
+    let ckpt = out.join(files::CHECKPOINTS);
+    assert_eq!(latest_checkpoint(&ckpt), Some(1));
+    assert!(!out.join(files::AVATAR).exists());
+
+    // An avatar with a non-finite parameter is refused by everything that loads one.
+    struct Poison;
+    impl ModuleMapper for Poison {
+        fn map_float<const D: usize>(&mut self, p: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            p.map(|t| t.clone() + t.zeros_like().add_scalar(f32::NAN))
+        }
+    }
+    let device = Device::flex();
+    let avatar = c.avatar().unwrap().init(&head().mesh, &device).unwrap();
+    let run = out_dir("nan-avatar");
+    std::fs::create_dir_all(&run).unwrap();
+    std::fs::copy(
+        out.join(files::AVATAR_CONFIG),
+        run.join(files::AVATAR_CONFIG),
+    )
+    .unwrap();
+    avatar
+        .map(&mut Poison)
+        .save_file(run.join(files::AVATAR))
+        .unwrap();
+    let e = texavatars::eval::run::load_avatar(&run, head(), &device).unwrap_err();
+    assert!(e.to_string().contains("NaN or infinite"), "{e}");
+}
+
+#[test]
+fn a_finished_run_is_replaced_only_with_force() {
+    let mut c = tiny_config();
+    c.iterations = 1;
+    c.checkpoint_every = 1;
+    c.val_frames = 0;
+    let out = out_dir("force");
+    train::train(&c, &options(&out, BackendKind::Flex)).unwrap();
+    // The checkpoints gone, the finished avatar still guards the folder.
+    std::fs::remove_dir_all(out.join(files::CHECKPOINTS)).unwrap();
+    let e = train::train(&c, &options(&out, BackendKind::Flex)).unwrap_err();
+    assert!(e.to_string().contains("--force"), "{e}");
+    // A stale scratch file of a killed save is removed at the start.
+    std::fs::write(out.join("avatar.bpk.123-0.tmp"), b"x").unwrap();
+    let mut o = options(&out, BackendKind::Flex);
+    o.force = true;
+    let unrelated = out.join("notes.txt");
+    std::fs::write(&unrelated, b"mine").unwrap();
+    let r = train::train(&c, &o).unwrap();
+    assert!(r.complete);
+    assert!(
+        unrelated.is_file(),
+        "--force removes only train's own files"
+    );
+    assert!(!out.join("avatar.bpk.123-0.tmp").exists());
+}
+
+/// Reads a child's stderr lines into a channel.
+fn stderr_lines(child: &mut std::process::Child) -> std::sync::mpsc::Receiver<String> {
+    use std::io::BufRead;
+    let (tx, rx) = std::sync::mpsc::channel();
+    let err = child.stderr.take().expect("piped stderr");
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(err).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    rx
+}
+
+/// `texavatars train` on the tiny benchmark with a long interval, progress on every
+/// iteration; returns the child once it has trained `after` iterations.
+#[cfg(unix)]
+fn train_child(
+    out: &Path,
+    after: usize,
+) -> (
+    std::process::Child,
+    std::sync::mpsc::Receiver<String>,
+    Vec<String>,
+) {
+    train_child_with(out, after, 400, 200)
+}
+
+/// [`train_child`] with `iterations` and `checkpoint_every`.
+#[cfg(unix)]
+fn train_child_with(
+    out: &Path,
+    after: usize,
+    iterations: usize,
+    checkpoint_every: usize,
+) -> (
+    std::process::Child,
+    std::sync::mpsc::Receiver<String>,
+    Vec<String>,
+) {
+    let mut c = tiny_config();
+    c.iterations = iterations;
+    c.checkpoint_every = checkpoint_every;
+    c.val_frames = 1;
+    c.log_every = 1;
+    std::fs::create_dir_all(out).unwrap();
+    let config = out.with_extension("json");
+    std::fs::write(&config, c.to_json()).unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["train", "--backend", "flex", "--data"])
+        .arg(data())
+        .arg("--config")
+        .arg(&config)
+        .arg("--out")
+        .arg(out)
+        .env_remove("BURN_DEVICE")
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("run texavatars");
+    let rx = stderr_lines(&mut child);
+    let mut seen = Vec::new();
+    let mark = format!("train  it {after}/");
+    loop {
+        let line = rx
+            .recv_timeout(std::time::Duration::from_secs(300))
+            .unwrap_or_else(|_| panic!("no progress: {seen:?}"));
+        let done = line.starts_with(&mark);
+        seen.push(line);
+        if done {
+            return (child, rx, seen);
+        }
+    }
+}
+
+#[cfg(unix)]
+fn kill(pid: u32, signals: &[&str]) {
+    let script: Vec<String> = signals.iter().map(|s| format!("kill -{s} {pid}")).collect();
+    let st = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(script.join("; "))
+        .status()
+        .unwrap();
+    assert!(st.success());
+}
+
+#[test]
+#[cfg(unix)]
+fn sigint_checkpoints_the_step_in_progress_and_says_how_to_resume() {
+    let out = out_dir("sigint");
+    let (mut child, rx, mut seen) = train_child(&out, 3);
+    kill(child.id(), &["INT"]);
+    let status = child.wait().unwrap();
+    seen.extend(rx.iter());
+    let stderr = seen.join("\n");
+    assert_eq!(status.code(), Some(130), "{stderr}");
+    assert!(
+        stderr.contains("SIGINT") && stderr.contains("--resume"),
+        "{stderr}"
+    );
+    let ckpt = out.join(files::CHECKPOINTS);
+    assert_eq!(latest_checkpoint(&ckpt), Some(1), "{stderr}");
+    let at = IterationRecord::load(&ckpt, 1).unwrap().unwrap().iteration;
+    assert!((3..200).contains(&at), "{at}");
+    assert!(
+        stderr.contains(&format!("stopped at iteration {at} of 400")),
+        "{stderr}"
+    );
+    assert!(!out.join(files::AVATAR).exists());
+}
+
+#[test]
+#[cfg(unix)]
+fn a_second_signal_exits_at_once() {
+    let out = out_dir("sigterm2");
+    let (mut child, rx, mut seen) = train_child(&out, 2);
+    // Two signals microseconds apart: the second arrives while the first's step runs. Two
+    // different ones: the kernel merges a signal into a pending one of the same number.
+    kill(child.id(), &["INT", "TERM"]);
+    let status = child.wait().unwrap();
+    seen.extend(rx.iter());
+    let stderr = seen.join("\n");
+    // 128 + the number of whichever signal came second (delivery order is the kernel's).
+    assert!(
+        matches!(status.code(), Some(130 | 143)),
+        "{status:?}: {stderr}"
+    );
+    assert!(!stderr.contains("stopped at iteration"), "{stderr}");
+    assert_eq!(latest_checkpoint(&out.join(files::CHECKPOINTS)), None);
+}
+
+/// Copies a folder tree (the tests that damage a dataset work on their own copy).
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dest = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_tree(&e.path(), &dest);
+        } else {
+            std::fs::copy(e.path(), dest).unwrap();
+        }
+    }
+}
+
+/// The training images of a synth output (`<root>/<sequence>/images/*.png`).
+fn training_images(root: &Path) -> Vec<PathBuf> {
+    let mut v = Vec::new();
+    for seq in std::fs::read_dir(root).unwrap() {
+        let images = seq.unwrap().path().join("images");
+        if let Ok(files) = std::fs::read_dir(&images) {
+            v.extend(files.map(|f| f.unwrap().path()));
+        }
+    }
+    v.sort();
+    v
+}
+
+/// Issue 15.5: every frame's files are checked before anything is written, all problems in
+/// one report; a frame that breaks only when decoded (past its header) stops the run with
+/// its checkpoint, naming the file and how to resume.
+#[test]
+fn bad_frames_are_found_up_front_or_stop_with_a_checkpoint() {
+    let root = out_dir("bad-frames-data");
+    copy_tree(data().parent().unwrap(), &root);
+    let union = root.join("union");
+    let images = training_images(&root);
+    let mut c = tiny_config();
+    c.iterations = 4;
+    c.checkpoint_every = 1;
+    c.val_frames = 0;
+    let options = |out: &Path| {
+        let mut o = TrainOptions::new(&union, out);
+        o.backend = Some(BackendKind::Flex);
+        o.head = Some(head().clone());
+        o.app_log = false;
+        o
+    };
+
+    // Two frames missing, far apart: both named, nothing written.
+    let frames =
+        texavatars::data::vhap::load_transforms(&union.join("transforms_train.json")).unwrap();
+    let (first, last) = (
+        frames[0].image.clone(),
+        frames[frames.len() - 1].image.clone(),
+    );
+    let keep: Vec<_> = [&first, &last].map(|p| std::fs::read(p).unwrap()).into();
+    std::fs::remove_file(&first).unwrap();
+    std::fs::remove_file(&last).unwrap();
+    let out = out_dir("bad-frames");
+    let e = train::train(&c, &options(&out)).unwrap_err().to_string();
+    let name = |p: &Path| p.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(e.contains("problem(s)"), "{e}");
+    assert!(e.contains(&name(&first)) && e.contains(&name(&last)), "{e}");
+    assert!(!out.exists(), "nothing is written before the check passes");
+    std::fs::write(&first, &keep[0]).unwrap();
+    std::fs::write(&last, &keep[1]).unwrap();
+
+    // Two iterations trained and checkpointed; then every image but frame 0's (which `train`
+    // decodes before it starts) cut in half (headers intact, pixels gone): the resumed run
+    // stops at iteration 2 and keeps checkpoint 2.
+    let mut o = options(&out);
+    o.stop_after = Some(2);
+    train::train(&c, &o).unwrap();
+    let frame0 = first.canonicalize().unwrap();
+    for p in images
+        .iter()
+        .filter(|p| p.canonicalize().unwrap() != frame0)
+    {
+        let bytes = std::fs::read(p).unwrap();
+        std::fs::write(p, &bytes[..bytes.len() / 2]).unwrap();
+    }
+    let mut o = options(&out);
+    o.resume = true;
+    let e = train::train(&c, &o).unwrap_err().to_string();
+    assert!(
+        e.contains("iteration 2") && e.contains("could not be read"),
+        "{e}"
+    );
+    assert!(
+        e.contains("holds iterations 0..2") && e.contains("--resume"),
+        "{e}"
+    );
+    assert_eq!(latest_checkpoint(&out.join(files::CHECKPOINTS)), Some(2));
+    assert!(!out.join(files::AVATAR).exists());
+    std::fs::remove_dir_all(&root).unwrap();
+}
+
+/// Issue 15.8, "a full disk": every write past a size fails in the child (`ulimit -f`, with
+/// SIGXFSZ ignored so the write returns EFBIG as a full disk returns ENOSPC). The run exits
+/// non-zero, the last complete checkpoint is untouched, and a later `--resume` on a disk
+/// with room finishes the run.
+#[test]
+#[cfg(unix)]
+fn a_failed_checkpoint_write_keeps_the_last_checkpoint() {
+    let out = out_dir("full-disk");
+    let mut c = tiny_config();
+    c.iterations = 3;
+    c.checkpoint_every = 1;
+    c.val_frames = 0;
+    let mut o = options(&out, BackendKind::Flex);
+    o.stop_after = Some(1);
+    train::train(&c, &o).unwrap();
+    let ckpt = out.join(files::CHECKPOINTS);
+    assert_eq!(latest_checkpoint(&ckpt), Some(1));
+    let snapshot = |dir: &Path| -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap())
+            .filter(|e| e.file_name().to_string_lossy().ends_with("-1.bpk"))
+            .map(|e| {
+                (
+                    e.file_name().to_string_lossy().into(),
+                    std::fs::read(e.path()).unwrap(),
+                )
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let before = snapshot(&ckpt);
+    let model_bytes = std::fs::metadata(ckpt.join("model-1.bpk")).unwrap().len();
+    // Blocks of 512 (dash) or 1024 (bash) bytes: a limit of a quarter or half the model.
+    let blocks = (model_bytes / 2048).max(1);
+    let config = out.with_extension("json");
+    std::fs::write(&config, c.to_json()).unwrap();
+    let run = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "trap '' XFSZ; ulimit -f {blocks}; exec \"$0\" \"$@\""
+        ))
+        .arg(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["train", "--backend", "flex", "--resume", "--data"])
+        .arg(data())
+        .arg("--config")
+        .arg(&config)
+        .arg("--out")
+        .arg(&out)
+        .env_remove("BURN_DEVICE")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success(), "{stderr}");
+    assert_eq!(
+        snapshot(&ckpt),
+        before,
+        "checkpoint 1 is untouched: {stderr}"
+    );
+    assert_eq!(latest_checkpoint(&ckpt), Some(1), "{stderr}");
+    assert!(!out.join(files::AVATAR).exists());
+
+    let mut o = options(&out, BackendKind::Flex);
+    o.resume = true;
+    let r = train::train(&c, &o).unwrap();
+    assert_eq!(
+        (r.start_iteration, r.end_iteration, r.complete),
+        (1, 3, true)
+    );
+}
+
+/// Issue 15.2 and 15.8, "a kill": a second run on a busy folder is refused naming the
+/// holder's pid; after `kill -9` the kernel has released the lock, and `--resume` continues
+/// from the newest complete checkpoint to the end.
+#[test]
+#[cfg(unix)]
+fn a_busy_folder_is_refused_and_a_killed_run_resumes() {
+    let out = out_dir("kill9");
+    let (mut child, _rx, _seen) = train_child_with(&out, 3, 400, 2);
+    let mut c = TrainConfig::load(&out.with_extension("json")).unwrap();
+    c.log_every = 0;
+    let mut o = options(&out, BackendKind::Flex);
+    o.resume = true;
+    let e = train::train(&c, &o).unwrap_err().to_string();
+    assert!(
+        e.contains(&format!("process {} is training", child.id())),
+        "{e}"
+    );
+    kill(child.id(), &["KILL"]);
+    child.wait().unwrap();
+    let ckpt = out.join(files::CHECKPOINTS);
+    let newest = latest_checkpoint(&ckpt).expect("checkpoint 1 was written at iteration 2");
+    // The rest of the run, shortened to one more interval (`iterations` may change).
+    c.iterations = 2 * newest + 2;
+    let r = train::train(&c, &o).unwrap();
+    assert_eq!(r.start_iteration, 2 * newest);
+    assert!(r.complete && out.join(files::AVATAR).is_file());
 }

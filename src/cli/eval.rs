@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use crate::data::Split;
+use crate::data::{PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::eval::run::{EvalOptions, evaluate};
 
@@ -43,6 +43,10 @@ pub struct EvalArgs {
     /// Where to compute (flex is the fast CPU backend for the networks).
     #[arg(long, value_enum, default_value = "flex")]
     pub backend: BackendKind,
+    /// Read dataset files that lie outside the dataset's folder (by default only files in
+    /// it, or in a sibling VHAP export it combines, are read).
+    #[arg(long)]
+    pub allow_outside_paths: bool,
 }
 
 /// Runs `eval`.
@@ -58,6 +62,11 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         stride: a.stride,
         panels: a.panels,
         backend: a.backend,
+        paths: if a.allow_outside_paths {
+            PathPolicy::Anywhere
+        } else {
+            PathPolicy::InsideRoot
+        },
     };
     let report = evaluate(&opts, &mut |l| eprintln!("eval: {l}"))?;
     println!("{}", report.table);

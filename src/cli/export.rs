@@ -6,8 +6,8 @@ use anyhow::Context;
 use clap::{Args, Subcommand};
 
 use crate::camera::CameraFile;
-use crate::cli::render::{DriveArgs, progress_bar};
-use crate::drive::{self, ExportStats, HostGaussians};
+use crate::cli::render::{DriveArgs, Driven, progress_bar};
+use crate::drive::{self, ExportStats, HostGaussians, outputs};
 use crate::io;
 use crate::model::constants::BACKGROUND;
 use crate::splat::ply;
@@ -26,7 +26,11 @@ pub struct PlyArgs {
     #[command(flatten)]
     pub drive: DriveArgs,
     /// Output folder: `FFFFF.ply` and `FFFFF_camera.json` per frame (F: the frame's position
-    /// in the motion).
+    /// in the motion). The files an earlier export left there (`FFFFF.ply`,
+    /// `FFFFF_camera.json`, `FFFFF_render.png`, `FFFFF_render.npy` and their unfinished
+    /// `*.partial` files, whatever their frame numbers) are deleted first, so frames of an
+    /// earlier, longer export never mix with the new ones; nothing else is touched (export
+    /// chunks of a motion with --frames into separate folders).
     #[arg(long)]
     pub out: PathBuf,
     /// Also write the avatar's own render of each frame (`FFFFF_render.png` and the float
@@ -49,6 +53,22 @@ pub fn run(cmd: ExportCommand) -> anyhow::Result<()> {
 fn ply_command(a: PlyArgs) -> anyhow::Result<()> {
     let d = a.drive.load()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let removed = outputs::clear_export_outputs(&a.out)?;
+    if removed > 0 {
+        eprintln!(
+            "export: removed {removed} file(s) of an earlier export from {}",
+            a.out.display()
+        );
+    }
+    let r = export_frames(&a, &d);
+    if r.is_err() {
+        outputs::remove_export_partials(&a.out);
+    }
+    r
+}
+
+/// Writes every frame's files (after the folder was cleared).
+fn export_frames(a: &PlyArgs, d: &Driven) -> anyhow::Result<()> {
     let n = d.motion.frames.len();
     let bar = progress_bar(n, "export");
     let mut total = ExportStats::default();
@@ -74,7 +94,10 @@ fn ply_command(a: PlyArgs) -> anyhow::Result<()> {
             camera: *cam,
             background: BACKGROUND,
         };
-        std::fs::write(&cam_path, serde_json::to_string_pretty(&cam_file)? + "\n")
+        let tmp = cam_path.with_extension("json.partial");
+        std::fs::write(&tmp, serde_json::to_string_pretty(&cam_file)? + "\n")
+            .with_context(|| format!("writing {}", tmp.display()))?;
+        std::fs::rename(&tmp, &cam_path)
             .with_context(|| format!("writing {}", cam_path.display()))?;
         if a.render {
             let (w, h) = (cam.width as usize, cam.height as usize);

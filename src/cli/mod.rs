@@ -21,6 +21,12 @@ use clap::{Parser, Subcommand};
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
+    /// Memory budget of this run: bytes with an optional K, M, G or T suffix (powers of
+    /// 1024), e.g. 16G. Commands refuse inputs whose estimated memory is above it, before
+    /// any work. Default: the TEXAVATARS_MAX_MEMORY environment variable, else 3/4 of the
+    /// machine's memory (see `texavatars::limits`).
+    #[arg(long, global = true, value_name = "SIZE", value_parser = crate::limits::parse_bytes)]
+    pub max_memory: Option<u64>,
 }
 
 /// Top-level commands.
@@ -62,7 +68,12 @@ pub enum Command {
 }
 
 /// Runs a parsed command line.
+///
+/// `--max-memory` is applied first ([`crate::limits::set_max_memory`]: for the rest of the
+/// process), and a malformed `TEXAVATARS_MAX_MEMORY` is an error before any work.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    crate::limits::set_max_memory(cli.max_memory);
+    crate::limits::budget()?;
     match cli.command {
         Command::Bench(c) => bench::run(c),
         Command::Demo(a) => demo::run(a),

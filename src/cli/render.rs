@@ -13,6 +13,7 @@ use crate::device::BackendKind;
 use crate::drive::{self, CameraPath, Identity, Motion, MotionKind, RenderOptions, View};
 use crate::eval::run::load_avatar;
 use crate::head::HeadAsset;
+use crate::limits;
 use crate::model::Avatar;
 
 /// Camera paths on the command line.
@@ -46,7 +47,8 @@ pub struct DriveArgs {
     /// Swing of the orbit, degrees to either side.
     #[arg(long, default_value_t = 30.0)]
     pub orbit_degrees: f32,
-    /// Image size of the orbit and front cameras, WIDTHxHEIGHT.
+    /// Image size of the orbit and front cameras, WIDTHxHEIGHT (each side at most 16384;
+    /// the frame's buffers must fit the memory budget, see --max-memory).
     #[arg(long, default_value = "550x802")]
     pub size: String,
     /// Vertical field of view of the orbit and front cameras, degrees.
@@ -107,8 +109,28 @@ pub fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
 }
 
 impl DriveArgs {
-    /// Loads the avatar, the motion (restricted to `--frames`) and one camera per frame.
+    /// Checks `--size` and `--frames` before anything is loaded: the size's syntax, its
+    /// sides against [`limits::IMAGE_SIDE`] and one frame's buffers against the memory budget.
+    pub fn check(&self) -> anyhow::Result<()> {
+        let (width, height) = parse_size(&self.size)?;
+        let what = format!("--size {}", self.size);
+        limits::check_image_size(&what, "", width.into(), height.into())?;
+        limits::check_memory(
+            &what,
+            "width x height",
+            limits::render_bytes(width.into(), height.into()),
+        )?;
+        if let Some(f) = &self.frames {
+            parse_frames(f)?;
+        }
+        Ok(())
+    }
+
+    /// Loads the avatar, the motion (restricted to `--frames`) and one camera per frame,
+    /// after [`DriveArgs::check`]; the motion's frame count and the memory of the whole run
+    /// (frames, image buffers, the avatar) are checked as soon as they are known.
     pub fn load(&self) -> anyhow::Result<Driven> {
+        self.check()?;
         let head = match &self.head {
             Some(p) => HeadAsset::load(p, None)?,
             None => {
@@ -170,6 +192,7 @@ impl DriveArgs {
         };
         let cameras = drive::cameras(&motion, path, &view)?;
         drive::render::check_motion(&avatar, &motion)?;
+        drive::render::check_render_memory(&avatar, &motion, &cameras)?;
         Ok(Driven {
             avatar,
             motion,
@@ -197,7 +220,10 @@ pub fn progress_bar(total: usize, what: &str) -> ProgressBar {
 pub struct RenderArgs {
     #[command(flatten)]
     pub drive: DriveArgs,
-    /// Output folder: frames/, contact_sheet.png, render.gif, render.mp4 (with ffmpeg).
+    /// Output folder: frames/, contact_sheet.png, render.gif, render.mp4 (with ffmpeg). The
+    /// files an earlier render left there (frames/NNNNN.png, contact_sheet.png, render.gif,
+    /// render.mp4 and their unfinished *.partial files) are deleted first, so frames of a
+    /// longer earlier run never mix with the new ones; nothing else is touched.
     #[arg(long)]
     pub out: PathBuf,
     /// Frames per second of the GIF and the MP4.

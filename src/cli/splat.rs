@@ -9,6 +9,7 @@ use clap::{Args, Subcommand};
 use crate::camera::CameraFile;
 use crate::device::BackendKind;
 use crate::io;
+use crate::limits;
 use crate::splat::{Gaussians, SplatParams, demo, ply, render};
 
 /// Rasterizer commands.
@@ -27,7 +28,8 @@ pub struct RenderArgs {
     #[arg(long)]
     pub ply: PathBuf,
     /// Camera JSON: width, height, fx, fy, cx, cy, world_to_camera (row-major, OpenCV),
-    /// optional background.
+    /// optional background. Width and height are at most 16384 and the image's buffers must
+    /// fit the memory budget (see --max-memory).
     #[arg(long)]
     pub camera: PathBuf,
     /// Output PNG.
@@ -47,7 +49,7 @@ pub struct DemoArgs {
     /// Output folder (scene.ply, camera.json, render.png).
     #[arg(long, default_value = "out/splat-demo")]
     pub out: PathBuf,
-    /// Number of Gaussians.
+    /// Number of Gaussians (at most 16777216).
     #[arg(long, default_value_t = 30_000)]
     pub gaussians: usize,
     /// Where to run.
@@ -64,6 +66,12 @@ pub fn run(cmd: SplatCommand) -> anyhow::Result<()> {
             Ok(())
         }
         SplatCommand::Demo(a) => {
+            limits::check_size("splat demo", "--gaussians", a.gaussians, &limits::GAUSSIANS)?;
+            limits::check_memory(
+                "splat demo",
+                "--gaussians",
+                limits::product(&[a.gaussians as u64, limits::GAUSSIAN_BYTES]),
+            )?;
             std::fs::create_dir_all(&a.out)
                 .with_context(|| format!("creating {}", a.out.display()))?;
             let ply_path = a.out.join("scene.ply");
@@ -90,7 +98,27 @@ pub fn render_file(
     backend: BackendKind,
 ) -> anyhow::Result<String> {
     let cam = CameraFile::load(camera)?;
+    let (cam_what, w, h) = (
+        camera.display().to_string(),
+        u64::from(cam.camera.width),
+        u64::from(cam.camera.height),
+    );
+    limits::check_image_size(&cam_what, "", w, h)?;
+    let image = limits::product(&[w, h, limits::SPLAT_BYTES_PER_PIXEL]);
+    limits::check_memory(&cam_what, "width x height", image)?;
     let scene = ply::read(ply_path)?;
+    let ply_what = ply_path.display().to_string();
+    limits::check_size(&ply_what, "vertex count", scene.len(), &limits::GAUSSIANS)?;
+    limits::check_estimate(
+        &ply_what,
+        "vertex count",
+        &limits::Estimate::new()
+            .add(format!("{w}x{h} image buffers"), image)
+            .add(
+                format!("{} Gaussians", scene.len()),
+                limits::product(&[scene.len() as u64, limits::GAUSSIAN_BYTES]),
+            ),
+    )?;
     let device = backend.device();
     let start = Instant::now();
     let gaussians = Gaussians::from_ply(&scene, cam.camera.position(), &device);

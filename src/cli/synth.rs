@@ -11,9 +11,17 @@ use crate::synth::{self, SynthConfig};
 /// Arguments of `synth`.
 #[derive(Debug, Args)]
 pub struct SynthArgs {
-    /// Output folder (VHAP's NeRSemble export layout; an existing run is resumed).
+    /// Output folder (VHAP's NeRSemble export layout). The settings and head are recorded
+    /// in OUT/synth/config.json and OUT/head/. Re-running with the same ones resumes the run
+    /// (complete timesteps are skipped, not rendered again); with different ones it is
+    /// refused, naming the field, unless --force.
     #[arg(long)]
     pub out: PathBuf,
+    /// When --out holds a benchmark made with other settings or another head: delete the
+    /// files a synth run writes there (images, masks, parameters, transforms, head, synth/;
+    /// nothing else) and generate it again.
+    #[arg(long)]
+    pub force: bool,
     /// JSON settings (see configs/synth.json); defaults when absent.
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -33,6 +41,11 @@ pub fn run(a: SynthArgs) -> anyhow::Result<()> {
         Some(p) => SynthConfig::load(p)?,
         None => SynthConfig::default(),
     };
+    let what = a
+        .config
+        .as_ref()
+        .map_or_else(|| "synth config".to_string(), |p| p.display().to_string());
+    config.check_memory(&what)?;
     let head = match &a.head {
         Some(p) if a.teeth => HeadAsset::load(p, None)?.with_teeth(&LipRings::load(p)?)?,
         Some(p) => HeadAsset::load(p, None)?,
@@ -47,7 +60,7 @@ pub fn run(a: SynthArgs) -> anyhow::Result<()> {
         config.free_frames,
         a.out.display()
     );
-    let s = synth::generate(&config, &head, &a.out, &mut |line| {
+    let s = synth::generate_with(&config, &head, &a.out, a.force, &mut |line| {
         eprintln!("synth: {line}")
     })?;
     println!(

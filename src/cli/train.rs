@@ -24,6 +24,10 @@ pub struct TrainArgs {
     /// Continue the run in `--out` from its newest complete checkpoint.
     #[arg(long)]
     pub resume: bool,
+    /// Start afresh even when `--out` holds a run or a finished avatar (train's own files
+    /// there are removed first).
+    #[arg(long, conflicts_with = "resume")]
+    pub force: bool,
     /// Where tensors live (overrides the config's `backend`).
     #[arg(long, value_enum)]
     pub backend: Option<BackendKind>,
@@ -32,6 +36,10 @@ pub struct TrainArgs {
     /// head.
     #[arg(long)]
     pub head: Option<PathBuf>,
+    /// Read dataset files that lie outside the dataset's folder (by default only files in
+    /// it, or in a sibling VHAP export it combines, are read).
+    #[arg(long)]
+    pub allow_outside_paths: bool,
 }
 
 /// Runs `train`.
@@ -54,6 +62,12 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     }
     let mut options = TrainOptions::new(&a.data, &a.out);
     options.resume = a.resume;
+    options.force = a.force;
+    if a.allow_outside_paths {
+        options.paths = crate::data::PathPolicy::Anywhere;
+    }
+    // Ctrl-C / SIGTERM: finish the step, checkpoint, say how to resume, exit 130 / 143.
+    options.handle_signals = true;
     options.backend = Some(backend);
     options.head = match &a.head {
         Some(p) => Some(HeadAsset::load(p, None)?),
@@ -61,12 +75,16 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     };
     let r = train::train(&config, &options)?;
     println!(
-        "trained iterations {}..{} in {:.1} s ({} Gaussians); avatar written to {}",
+        "trained iterations {}..{} in {:.1} s ({} Gaussians); {}",
         r.start_iteration,
         r.end_iteration,
         r.seconds,
         r.gaussians,
-        r.avatar_path.display()
+        if r.complete {
+            format!("avatar written to {}", r.avatar_path.display())
+        } else {
+            "stopped with a checkpoint (no avatar yet)".into()
+        }
     );
     Ok(())
 }

@@ -7,6 +7,7 @@ use clap::{Args, Subcommand};
 
 use crate::io;
 use crate::lift::Topology;
+use crate::limits;
 use crate::mesh::UvMesh;
 use crate::texel::inspect;
 
@@ -24,10 +25,10 @@ pub struct InspectArgs {
     /// OBJ mesh with UVs (`f p/t ...`).
     #[arg(long)]
     pub mesh: PathBuf,
-    /// Texel resolution R of the layout maps.
+    /// Texel resolution R of the layout maps (at most 4096).
     #[arg(long, default_value_t = 512)]
     pub res: usize,
-    /// Sample grid size S (defaults to R).
+    /// Sample grid size S (defaults to R; at most 4096).
     #[arg(long)]
     pub samples: Option<usize>,
     /// Output folder.
@@ -42,7 +43,33 @@ pub fn run(cmd: UvCommand) -> anyhow::Result<()> {
     }
 }
 
+/// Checks `--res` and `--samples` against their caps and the memory budget.
+pub fn check_inspect(a: &InspectArgs) -> crate::error::Result<()> {
+    let what = "uv inspect";
+    let s = a.samples.unwrap_or(a.res);
+    limits::check_size(what, "--res", a.res, &limits::UV_RES)?;
+    let samples_field = if a.samples.is_some() {
+        "--samples"
+    } else {
+        "--res"
+    };
+    limits::check_size(what, samples_field, s, &limits::SAMPLE_GRID)?;
+    let (r, s) = (a.res as u64, s as u64);
+    let estimate = limits::Estimate::new()
+        .add(
+            format!("{r}x{r} texel maps"),
+            limits::product(&[r, r, limits::LAYOUT_BYTES_PER_TEXEL]),
+        )
+        .add(
+            format!("{s}x{s} sample grid"),
+            limits::product(&[s, s, limits::SAMPLE_BYTES]),
+        );
+    let field = if s > r { samples_field } else { "--res" };
+    limits::check_estimate(what, field, &estimate)
+}
+
 fn inspect_layout(a: InspectArgs) -> anyhow::Result<()> {
+    check_inspect(&a)?;
     let mesh = UvMesh::load(&a.mesh)?;
     let s = a.samples.unwrap_or(a.res);
     let topo = Topology::new(&mesh, a.res, s)?;

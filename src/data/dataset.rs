@@ -32,6 +32,7 @@ use burn::data::dataset::{Dataset, DatasetError};
 use crate::camera::Camera;
 use crate::data::identity::Identity;
 use crate::data::split::Split;
+use crate::data::validate::{PathPolicy, check_paths, report};
 use crate::data::vhap::{self, ETA_DIM, VhapFrame};
 use crate::error::{Error, Result};
 use crate::head::model::JOINTS;
@@ -126,16 +127,38 @@ impl std::fmt::Debug for HeadDataset {
 }
 
 impl HeadDataset {
-    /// Opens `root/transforms_<split>.json` (see [`Split::file_name`]).
+    /// Opens `root/transforms_<split>.json` (see [`Split::file_name`]); its files must stay
+    /// inside the dataset root ([`PathPolicy::InsideRoot`]).
     pub fn open(root: &Path, split: Split, model: Arc<HeadModel>) -> Result<Self> {
-        Self::from_transforms(&root.join(split.file_name()), model)
+        Self::open_with(root, split, model, PathPolicy::InsideRoot)
+    }
+
+    /// [`HeadDataset::open`] with a choice of where the files may live.
+    pub fn open_with(
+        root: &Path,
+        split: Split,
+        model: Arc<HeadModel>,
+        paths: PathPolicy,
+    ) -> Result<Self> {
+        Self::from_transforms_with(&root.join(split.file_name()), model, paths)
+    }
+
+    /// Opens one `transforms_*.json` whose files stay inside the dataset root
+    /// ([`PathPolicy::InsideRoot`]); see [`HeadDataset::from_transforms_with`].
+    pub fn from_transforms(path: &Path, model: Arc<HeadModel>) -> Result<Self> {
+        Self::from_transforms_with(path, model, PathPolicy::InsideRoot)
     }
 
     /// Opens one `transforms_*.json`. Reads and checks the JSON (every frame must have a
-    /// `flame_param_path`), the model and the subject's identity
-    /// ([`Identity::of_transforms`], fitted to the model); images and parameters are read per
-    /// item.
-    pub fn from_transforms(path: &Path, model: Arc<HeadModel>) -> Result<Self> {
+    /// `flame_param_path`; every file named must be where `paths` allows, see
+    /// [`check_paths`]), the model and the subject's identity ([`Identity::of_transforms`],
+    /// fitted to the model); images and parameters are read per item, or all at once by
+    /// [`HeadDataset::check_files`].
+    pub fn from_transforms_with(
+        path: &Path,
+        model: Arc<HeadModel>,
+        paths: PathPolicy,
+    ) -> Result<Self> {
         let what = path.display().to_string();
         model.validate("head model")?;
         if model.num_joints() != JOINTS {
@@ -155,6 +178,9 @@ impl HeadDataset {
                 format!("frames[{i}].flame_param_path"),
                 "missing; every frame needs its FLAME parameters",
             ));
+        }
+        if let Some(e) = report(&what, &check_paths(path, &frames, paths)) {
+            return Err(e);
         }
         let identity = Arc::new(Identity::of_transforms(path)?.fit(&model)?);
         Ok(HeadDataset {

@@ -335,6 +335,9 @@ pub fn load_transforms(path: &Path) -> Result<Vec<VhapFrame>> {
                     "not finite",
                 ));
             }
+            if let Some(why) = crate::camera::rotation_problem(m) {
+                return Err(Error::invalid(&what, field("transform_matrix"), why));
+            }
             if (m[3][0].abs() + m[3][1].abs() + m[3][2].abs() + (m[3][3] - 1.0).abs()) > 1e-4 {
                 return Err(Error::invalid(
                     &what,

@@ -16,6 +16,9 @@
 //!   `flame_param/`) is used when present, zeros otherwise.
 //! - **curves**: any other `.json`, expression and pose keyframes interpolated linearly
 //!   ([`Curves`]).
+//!
+//! Every source's frame count is checked against [`limits::FRAMES`] and the memory the
+//! loaded frames take against the budget ([`check_frames`]) before the frames are built.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -25,11 +28,13 @@ use serde::Deserialize;
 
 use crate::camera::Camera;
 pub use crate::data::Identity;
-use crate::data::dataset::pose_conditioning;
+use crate::data::dataset::{POSE_DIM, pose_conditioning};
 use crate::data::vhap::{self, ETA_DIM};
 use crate::data::{Conditioning, HeadDataset};
 use crate::error::{Error, Result};
 use crate::head::{HeadMeta, HeadModel, HeadPose};
+use crate::io::npz::Npz;
+use crate::limits;
 
 /// Where a motion came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -112,6 +117,15 @@ impl Motion {
     /// A dataset split: one frame per timestep with its cameras.
     fn dataset(path: &Path, model: &HeadModel) -> Result<Self> {
         let ds = HeadDataset::from_transforms(path, Arc::new(model.clone()))?;
+        let mut timesteps: Vec<usize> = ds.frames().iter().map(|f| f.timestep).collect();
+        timesteps.sort_unstable();
+        timesteps.dedup();
+        check_frames(
+            &path.display().to_string(),
+            "frames",
+            timesteps.len(),
+            model,
+        )?;
         let mut frames: Vec<MotionFrame> = Vec::new();
         let mut at: BTreeMap<usize, usize> = BTreeMap::new();
         for (i, f) in ds.frames().iter().enumerate() {
@@ -169,6 +183,23 @@ impl Motion {
             vec![path.to_path_buf()]
         };
         let identity = identity.fit(model)?;
+        // Frame counts first (the `expr` arrays' rows): the frames' meshes are built only
+        // when they all fit.
+        let mut total = 0usize;
+        for f in &files {
+            let what = f.display().to_string();
+            let t = match Npz::open(f)?.floats("expr")?.shape.as_slice() {
+                [t, _] => *t,
+                _ => 1, // (E,): one frame; other shapes: refused by the reader below
+            };
+            total = total.saturating_add(t.max(1));
+            let field = if files.len() == 1 {
+                "expr (frames)".to_string()
+            } else {
+                format!("expr (frames, {total} so far over {} files)", files.len())
+            };
+            check_frames(&what, &field, total, model)?;
+        }
         let mut frames = Vec::new();
         for f in &files {
             let poses = HeadPose::load_npz_frames(f)?;
@@ -201,6 +232,7 @@ impl Motion {
         identity: &Identity,
     ) -> Result<Self> {
         let what = path.display().to_string();
+        check_frames(&what, "frames", curves.frames, model)?;
         let identity = identity.fit(model)?;
         let poses = curves.poses(model, meta, &what)?;
         let frames = poses
@@ -232,6 +264,22 @@ impl Motion {
         self.frames = self.frames[range].to_vec();
         Ok(())
     }
+}
+
+/// Checks a motion of `frames` frames on `model`: at most [`limits::FRAMES`], and the
+/// loaded frames (their posed meshes, [`limits::motion_frame_bytes`]) within the memory
+/// budget. `what` and `field` name the source in errors.
+pub fn check_frames(what: &str, field: &str, frames: usize, model: &HeadModel) -> Result<()> {
+    limits::check_size(what, field, frames, &limits::FRAMES)?;
+    let per = limits::motion_frame_bytes(model.num_vertices(), model.num_expr + POSE_DIM + ETA_DIM);
+    limits::check_estimate(
+        what,
+        field,
+        &limits::Estimate::new().add(
+            format!("{frames} motion frames"),
+            limits::product(&[frames as u64, per]),
+        ),
+    )
 }
 
 /// Frame `t` of a driver's `pose` on the avatar's `identity`.
@@ -286,6 +334,7 @@ impl Curves {
         if self.frames == 0 {
             return Err(Error::invalid(what, "frames", "must be at least 1"));
         }
+        limits::check_size(what, "frames", self.frames, &limits::FRAMES)?;
         let mut out = vec![HeadPose::neutral(model); self.frames];
         for (name, keys) in &self.expression {
             let field = format!("expression.{name}");

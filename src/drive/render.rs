@@ -2,8 +2,9 @@
 //! an MP4 when `ffmpeg` is on the PATH.
 //!
 //! Frames are written as they are rendered (`OUT/frames/00000.png`, ...), so an interrupted
-//! run keeps what it made; the sheet, GIF and MP4 are written at the end, each through a
-//! temporary file.
+//! run keeps what it made; the GIF is encoded frame by frame into a temporary file, the sheet
+//! and MP4 are written at the end, each through a temporary file. A run first removes the
+//! files of an earlier run in the same folder ([`crate::drive::outputs`]).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -16,8 +17,10 @@ use image::{Delay, Frame, RgbImage, RgbaImage};
 use crate::camera::Camera;
 use crate::data::Conditioning;
 use crate::drive::motion::Motion;
+use crate::drive::outputs;
 use crate::error::{Error, Result};
 use crate::io;
+use crate::limits;
 use crate::model::Avatar;
 use crate::splat::Gaussians;
 
@@ -133,6 +136,12 @@ pub fn render_frame_with(
 
 /// Renders every frame of `motion` from `cameras` (one per frame) into `opts.out`;
 /// `progress(done, total)` is called after each frame.
+///
+/// After the inputs are checked, the files an earlier `render` left in `opts.out` are
+/// removed ([`crate::drive::outputs::clear_render_outputs`]: `frames/NNNNN.png`, the sheet,
+/// the GIF, the MP4; nothing else), so a shorter run never leaves frames of a longer one
+/// behind. Frames are encoded into the GIF as they are rendered, so memory does not grow
+/// with the motion's length. On an error the temporary files are removed.
 pub fn render_motion(
     avatar: &Avatar,
     motion: &Motion,
@@ -156,6 +165,59 @@ pub fn render_motion(
     if opts.fps == 0 {
         return Err(Error::invalid("render", "fps", "must be at least 1"));
     }
+    check_render_memory(avatar, motion, cameras)?;
+    outputs::clear_render_outputs(&opts.out)?;
+    let r = render_frames(avatar, motion, cameras, device, opts, progress);
+    if r.is_err() {
+        outputs::remove_render_partials(&opts.out);
+    }
+    r
+}
+
+/// The memory a render of `motion` from `cameras` needs, checked against
+/// [`crate::limits::budget`] (the motion's frames held, one frame's buffers at the largest
+/// camera, the avatar's inference).
+pub fn check_render_memory(avatar: &Avatar, motion: &Motion, cameras: &[Camera]) -> Result<()> {
+    let what = motion.source.display().to_string();
+    let (mut w, mut h, mut px) = (0u64, 0u64, 0u64);
+    for c in cameras {
+        limits::check_image_size(&what, "camera ", c.width.into(), c.height.into())?;
+        let p = u64::from(c.width) * u64::from(c.height);
+        if p > px {
+            (w, h, px) = (c.width.into(), c.height.into(), p);
+        }
+    }
+    let per_frame = motion.frames.first().map_or(0, |f| {
+        let c = &f.conditioning;
+        limits::motion_frame_bytes(c.vertices.len(), c.expr.len() + c.pose.len() + c.eta.len())
+    });
+    let (image, frames) = (
+        limits::render_bytes(w, h),
+        limits::product(&[motion.frames.len() as u64, per_frame]),
+    );
+    let estimate = limits::Estimate::new()
+        .add(format!("{w}x{h} frame buffers"), image)
+        .add(format!("{} motion frames", motion.frames.len()), frames)
+        .add(
+            "avatar",
+            limits::avatar_bytes(avatar.net.uv_res, avatar.num_gaussians()),
+        );
+    let field = if frames > image {
+        "frames"
+    } else {
+        "image size"
+    };
+    limits::check_estimate(&what, field, &estimate)
+}
+
+fn render_frames(
+    avatar: &Avatar,
+    motion: &Motion,
+    cameras: &[Camera],
+    device: &Device,
+    opts: &RenderOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<RenderReport> {
     let dir = opts.out.join("frames");
     std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
     let n = motion.frames.len();
@@ -163,7 +225,8 @@ pub fn render_motion(
         .map(|i| i * n / SHEET_FRAMES.min(n))
         .collect();
     let mut thumbs = Vec::new();
-    let mut gif_frames = Vec::new();
+    let gif = opts.out.join("render.gif");
+    let mut gif_out = GifWriter::create(&gif, opts.fps)?;
     let mut frames = Vec::with_capacity(n);
     let mut view: Option<(Camera, Tensor<4>)> = None;
     for (i, (f, cam)) in motion.frames.iter().zip(cameras).enumerate() {
@@ -184,14 +247,13 @@ pub fn render_motion(
         if sheet_at.contains(&i) {
             thumbs.push(fit(&img, THUMB_SIDE));
         }
-        gif_frames.push(fit(&img, GIF_SIDE));
+        gif_out.push(&fit(&img, GIF_SIDE))?;
         frames.push(path);
         progress(i + 1, n);
     }
     let sheet = opts.out.join("contact_sheet.png");
     write_sheet(&sheet, &thumbs)?;
-    let gif = opts.out.join("render.gif");
-    write_gif(&gif, &gif_frames, opts.fps)?;
+    gif_out.finish()?;
     let mp4 = if opts.mp4 {
         write_mp4(&dir, &opts.out.join("render.mp4"), opts.fps)
     } else {
@@ -244,21 +306,43 @@ fn write_sheet(path: &Path, thumbs: &[RgbImage]) -> Result<()> {
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
-fn write_gif(path: &Path, frames: &[RgbImage], fps: u32) -> Result<()> {
-    let tmp = path.with_extension("gif.partial");
-    let file = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
-    let gif_err =
-        |e: image::ImageError| Error::invalid(tmp.display().to_string(), "gif", e.to_string());
-    enc.set_repeat(Repeat::Infinite).map_err(gif_err)?;
-    let delay = Delay::from_numer_denom_ms(1000, fps);
-    for f in frames {
-        let rgba: RgbaImage = image::DynamicImage::ImageRgb8(f.clone()).to_rgba8();
-        enc.encode_frame(Frame::from_parts(rgba, 0, 0, delay))
-            .map_err(gif_err)?;
+/// An animated GIF written frame by frame to `X.gif.partial`, renamed to `X.gif` by
+/// [`GifWriter::finish`].
+struct GifWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    enc: GifEncoder<std::io::BufWriter<std::fs::File>>,
+    delay: Delay,
+}
+
+impl GifWriter {
+    fn create(path: &Path, fps: u32) -> Result<Self> {
+        let tmp = path.with_extension("gif.partial");
+        let file = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+        let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
+        enc.set_repeat(Repeat::Infinite)
+            .map_err(|e| Error::invalid(tmp.display().to_string(), "gif", e.to_string()))?;
+        Ok(GifWriter {
+            path: path.to_path_buf(),
+            tmp,
+            enc,
+            delay: Delay::from_numer_denom_ms(1000, fps),
+        })
     }
-    drop(enc);
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+
+    fn push(&mut self, frame: &RgbImage) -> Result<()> {
+        let rgba: RgbaImage = image::DynamicImage::ImageRgb8(frame.clone()).to_rgba8();
+        self.enc
+            .encode_frame(Frame::from_parts(rgba, 0, 0, self.delay))
+            .map_err(|e| Error::invalid(self.tmp.display().to_string(), "gif", e.to_string()))
+    }
+
+    /// Writes the trailer (when the encoder is dropped) and renames the file into place.
+    fn finish(self) -> Result<()> {
+        let GifWriter { path, tmp, enc, .. } = self;
+        drop(enc);
+        std::fs::rename(&tmp, &path).map_err(|e| Error::io(&path, e))
+    }
 }
 
 /// Encodes `frames/%05d.png` with ffmpeg (H.264, yuv420p, sizes padded to even); `Err` says

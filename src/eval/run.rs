@@ -19,7 +19,7 @@ use burn::module::Module;
 use serde::Serialize;
 
 use crate::data::identity::CANONICAL;
-use crate::data::{HeadBatcher, HeadDataset, Identity, Split};
+use crate::data::{HeadBatcher, HeadDataset, Identity, PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
@@ -51,6 +51,8 @@ pub struct EvalOptions {
     pub panels: usize,
     /// Where to compute.
     pub backend: BackendKind,
+    /// Where the datasets' files may live ([`PathPolicy`]; `--allow-outside-paths`).
+    pub paths: PathPolicy,
 }
 
 /// One scored image.
@@ -103,10 +105,13 @@ pub fn load_avatar(run: &Path, head: &HeadAsset, device: &burn::tensor::Device) 
             "missing: the run has not finished (train it, or resume it with `texavatars train --resume`)",
         ));
     }
-    cfg.init(&head.mesh, device)?
+    let avatar = cfg
+        .init(&head.mesh, device)?
         .try_load_file(&weights)
-        .map(Avatar::for_inference)
-        .map_err(|e| Error::invalid(weights.display().to_string(), "record", e.to_string()))
+        .map_err(|e| Error::invalid(weights.display().to_string(), "record", e.to_string()))?;
+    // A diverged run's NaN weights would render white frames without a word.
+    avatar.check_finite(&weights.display().to_string())?;
+    Ok(Avatar::for_inference(avatar))
 }
 
 /// Evenly spread `count` indices of `0..n`.
@@ -160,13 +165,26 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     let model = Arc::new(head.model.clone());
     let mut tally = Tally::default();
     let mut images = Vec::new();
-    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    // Every split's files, before any scoring (issue 15.5).
+    let mut datasets = Vec::with_capacity(splits.len());
     for (split, path) in &splits {
         let t0 = Instant::now();
-        let mut ds = HeadDataset::from_transforms(path, model.clone())?;
+        let mut ds = HeadDataset::from_transforms_with(path, model.clone(), opts.paths)?;
         if let Some(id) = &identity {
             ds = ds.with_identity(id)?;
         }
+        let checked = ds.check_files()?;
+        progress(&format!(
+            "{split}: checked {} frames and {} timesteps in {:.1} s",
+            checked.frames,
+            checked.timesteps,
+            t0.elapsed().as_secs_f64()
+        ));
+        datasets.push(ds);
+    }
+    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    for ((split, _), ds) in splits.iter().zip(datasets) {
+        let t0 = Instant::now();
         let indices: Vec<usize> = (0..ds.len()).step_by(opts.stride.max(1)).collect();
         let panel_at = spread(indices.len(), opts.panels);
         let dir = opts.out.join("images").join(split);

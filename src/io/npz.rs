@@ -1,14 +1,14 @@
 //! `.npz` archives (numpy's zip of `.npy` arrays), through `npyz`: float arrays (f4/f8) and
 //! integer arrays (any width and sign) by name, with errors naming the file and the array.
 
-use std::io::Cursor;
+use std::io::{Cursor, Read};
 use std::path::{Path, PathBuf};
 
 use npyz::WriterBuilder;
 use npyz::npz::NpzArchive;
 
 use crate::error::{Error, Result};
-use crate::io::npy::Array;
+use crate::io::npy::{self, Array, Header};
 
 /// An integer array with its shape.
 #[derive(Clone, Debug, PartialEq)]
@@ -54,20 +54,87 @@ impl Npz {
         self.archive.array_names().any(|n| n == name)
     }
 
-    fn npy(&mut self, name: &str) -> Result<npyz::NpyFile<impl std::io::Read + '_>> {
+    /// The bytes of the member `name.npy` and its parsed header. The member is checked
+    /// before it is decompressed (`zip` panics on some hostile entries: an AES extra field
+    /// without the encryption flag, an unknown compression method), its size against the
+    /// header's shape before the data is read, and no more than the header and the shape
+    /// need is read (whatever the member decompresses to).
+    fn member(&mut self, name: &str) -> Result<(Vec<u8>, Header)> {
+        use npyz::zip::CompressionMethod;
         let what = self.what();
-        match self.archive.by_name(name) {
-            Ok(Some(f)) => Ok(f),
-            Ok(None) => Err(Error::invalid(what, name, "missing from the archive")),
-            Err(e) => Err(Error::invalid(what, name, format!("unreadable: {e}"))),
+        let err = |why: String| Error::invalid(&what, name, why);
+        let file_name = format!("{name}.npy");
+        let zip = self.archive.zip_archive();
+        if !zip.file_names().any(|n| n == file_name) {
+            return Err(err("missing from the archive".into()));
         }
+        // The last entry of that name, as `zip`'s own lookup takes.
+        let index = (0..zip.len())
+            .rev()
+            .find(|&i| {
+                zip.by_index_raw(i)
+                    .is_ok_and(|f| f.name() == file_name.as_str())
+            })
+            .ok_or_else(|| err("unreadable: its local header is damaged".into()))?;
+        let declared = {
+            let f = zip
+                .by_index_raw(index)
+                .map_err(|e| err(format!("unreadable: {e}")))?;
+            let known = matches!(
+                f.compression(),
+                CompressionMethod::Stored
+                    | CompressionMethod::Deflated
+                    | CompressionMethod::Bzip2
+                    | CompressionMethod::Zstd
+            );
+            if !known {
+                return Err(err(format!(
+                    "unsupported compression method {:?}",
+                    f.compression()
+                )));
+            }
+            if extra_field_ids(f.extra_data()).any(|id| id == AES_EXTRA_FIELD) {
+                return Err(err("encrypted members are not supported".into()));
+            }
+            f.size()
+        };
+        let mut f = zip
+            .by_index(index)
+            .map_err(|e| err(format!("unreadable: {e}")))?;
+        let read = |f: &mut dyn Read, bytes: &mut Vec<u8>, n: usize| {
+            (&mut *f)
+                .take(n.saturating_sub(bytes.len()) as u64)
+                .read_to_end(bytes)
+                .map_err(|e| err(format!("truncated or unreadable: {e}")))
+        };
+        // The header first (its 10 or 12 leading bytes give its length), then the data.
+        let mut bytes = Vec::new();
+        read(&mut f, &mut bytes, 12)?;
+        let (start, len) = npy::prelude(&bytes, &what, name)?;
+        read(&mut f, &mut bytes, start + len)?;
+        let header = Header::parse(&bytes, &what, name)?;
+        let size = item_size(&header.descr).unwrap_or(0);
+        let need = header.file_len(size).ok_or_else(|| {
+            err(format!(
+                "shape {:?} is too large for any file",
+                header.shape
+            ))
+        })?;
+        if need as u64 > declared {
+            return Err(err(format!(
+                "truncated: shape {:?} of {} needs {need} bytes, the member holds {declared}",
+                header.shape, header.descr
+            )));
+        }
+        read(&mut f, &mut bytes, need)?;
+        Ok((bytes, header))
     }
 
     /// A float array (float32, or float64 converted), all values finite.
     pub fn floats(&mut self, name: &str) -> Result<Array> {
         let what = self.what();
-        let npy = self.npy(name)?;
-        let Array { shape, data } = crate::io::npy::floats(npy, &what, name)?;
+        let (bytes, _) = self.member(name)?;
+        let Array { shape, data } = npy::parse(&bytes, &what, name)?;
         if let Some(i) = data.iter().position(|v| !v.is_finite()) {
             return Err(Error::invalid(
                 &what,
@@ -78,35 +145,24 @@ impl Npz {
         Ok(Array { shape, data })
     }
 
-    /// An integer array of any width and sign.
+    /// An integer array of any width and sign (`<i4`, `<i8`, `<u4`, `<u8`; `u8` values
+    /// above `i64::MAX` read as -1).
     pub fn ints(&mut self, name: &str) -> Result<IntArray> {
         let what = self.what();
-        let npy = self.npy(name)?;
-        let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
-        let descr = npy.dtype().descr();
-        let bad = |e: std::io::Error| {
-            Error::invalid(&what, name, format!("truncated or unreadable: {e}"))
-        };
-        let data: Vec<i64> = match descr.trim_matches('\'') {
-            "<i8" => npy.into_vec::<i64>().map_err(bad)?,
-            "<i4" => npy
-                .into_vec::<i32>()
-                .map_err(bad)?
-                .into_iter()
-                .map(i64::from)
-                .collect(),
-            "<u4" => npy
-                .into_vec::<u32>()
-                .map_err(bad)?
-                .into_iter()
-                .map(i64::from)
-                .collect(),
-            "<u8" => npy
-                .into_vec::<u64>()
-                .map_err(bad)?
-                .into_iter()
-                .map(|v| if v > i64::MAX as u64 { -1 } else { v as i64 })
-                .collect(),
+        let (bytes, h) = self.member(name)?;
+        let w4 = |c: &[u8]| [c[0], c[1], c[2], c[3]];
+        let w8 = |c: &[u8]| [c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]];
+        let data: Vec<i64> = match h.descr.as_str() {
+            "<i8" => h.values(&bytes, 8, &what, name, |c| i64::from_le_bytes(w8(c)))?,
+            "<i4" => h.values(&bytes, 4, &what, name, |c| {
+                i64::from(i32::from_le_bytes(w4(c)))
+            })?,
+            "<u4" => h.values(&bytes, 4, &what, name, |c| {
+                i64::from(u32::from_le_bytes(w4(c)))
+            })?,
+            "<u8" => h.values(&bytes, 8, &what, name, |c| {
+                i64::try_from(u64::from_le_bytes(w8(c))).unwrap_or(-1)
+            })?,
             other => {
                 return Err(Error::invalid(
                     &what,
@@ -115,10 +171,34 @@ impl Npz {
                 ));
             }
         };
-        if data.len() != shape.iter().product::<usize>() {
-            return Err(Error::invalid(&what, name, "truncated"));
-        }
-        Ok(IntArray { shape, data })
+        Ok(IntArray {
+            shape: h.shape,
+            data,
+        })
+    }
+}
+
+/// The header id of WinZip's AES extra field.
+const AES_EXTRA_FIELD: u16 = 0x9901;
+
+/// The ids of a zip entry's extra fields (a malformed tail ends the list).
+fn extra_field_ids(extra: &[u8]) -> impl Iterator<Item = u16> + '_ {
+    let mut rest = extra;
+    std::iter::from_fn(move || {
+        let (head, tail) = rest.split_at_checked(4)?;
+        let id = u16::from_le_bytes([head[0], head[1]]);
+        let len = usize::from(u16::from_le_bytes([head[2], head[3]]));
+        rest = tail.get(len..).unwrap_or(&[]);
+        Some(id)
+    })
+}
+
+/// Bytes per element of the dtypes read here (0 for others: refused after the header).
+fn item_size(descr: &str) -> Option<usize> {
+    match descr {
+        "<f4" | "<i4" | "<u4" => Some(4),
+        "<f8" | "<i8" | "<u8" => Some(8),
+        _ => None,
     }
 }
 

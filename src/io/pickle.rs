@@ -139,12 +139,42 @@ fn kind(v: &Value) -> &'static str {
     }
 }
 
-/// A stack or memo entry: the value and the identity of the object it is a copy of
-/// (0 for immutable values).
+/// A stack or memo entry: the value, the identity of the object it is a copy of (0 for
+/// immutable values), its nesting depth and its weight (nodes, strings by length).
 #[derive(Clone, Debug)]
 struct Slot {
     value: Value,
     id: u64,
+    depth: usize,
+    weight: usize,
+}
+
+impl Slot {
+    /// A value without children.
+    fn leaf(value: Value, id: u64) -> Slot {
+        let weight = 1 + match &value {
+            Value::Str(s) => s.len() / 32,
+            _ => 0,
+        };
+        Slot {
+            value,
+            id,
+            depth: 1,
+            weight,
+        }
+    }
+}
+
+/// The deepest nesting of containers accepted. Checkpoints nest a few levels; deeper trees
+/// would overflow the stack when compared, walked or dropped (all recursive).
+pub const MAX_DEPTH: usize = 64;
+
+/// Work (values copied into or out of the memo, dict keys compared) allowed for a pickle of
+/// `len` bytes: ample for checkpoints, which copy little, and a bound on pickles that double
+/// a value through the memo again and again (exponential memory) or grow a memoised dict
+/// one item at a time (quadratic time).
+fn work_budget(len: usize) -> usize {
+    (1usize << 21).saturating_add(len.saturating_mul(16))
 }
 
 struct Machine<'a> {
@@ -157,6 +187,8 @@ struct Machine<'a> {
     marks: Vec<usize>,
     memo: HashMap<u32, Slot>,
     next_id: u64,
+    /// Work left (see [`work_budget`]).
+    budget: usize,
 }
 
 /// Parses a pickle held in `bytes`; errors name `what` (the file) and the byte offset.
@@ -170,6 +202,7 @@ pub fn read(bytes: &[u8], what: &str) -> Result<Value> {
         marks: Vec::new(),
         memo: HashMap::new(),
         next_id: 1,
+        budget: work_budget(bytes.len()),
     };
     m.run()
 }
@@ -177,6 +210,17 @@ pub fn read(bytes: &[u8], what: &str) -> Result<Value> {
 impl<'a> Machine<'a> {
     fn err(&self, why: impl Into<String>) -> Error {
         Error::invalid(self.what, format!("pickle byte {}", self.at), why)
+    }
+
+    /// Spends `work` of the budget.
+    fn charge(&mut self, work: usize) -> Result<()> {
+        self.budget = self.budget.checked_sub(work).ok_or_else(|| {
+            self.err(
+                "the pickle copies values through its memo (or compares dict keys) far more \
+                 than its size warrants; refused",
+            )
+        })?;
+        Ok(())
     }
 
     fn take(&mut self, n: usize) -> Result<&'a [u8]> {
@@ -213,32 +257,57 @@ impl<'a> Machine<'a> {
     }
 
     fn push(&mut self, value: Value) {
-        self.stack.push(Slot { value, id: 0 });
+        self.stack.push(Slot::leaf(value, 0));
     }
 
     fn push_object(&mut self, value: Value) {
         let id = self.next_id;
         self.next_id += 1;
-        self.stack.push(Slot { value, id });
+        self.stack.push(Slot::leaf(value, id));
     }
 
-    fn pop(&mut self) -> Result<Value> {
+    /// Pushes a new container (an immutable tuple) of `items`.
+    fn push_tuple(&mut self, items: Vec<Slot>) -> Result<()> {
+        let (depth, weight) = self.children(&items)?;
+        self.stack.push(Slot {
+            value: Value::Tuple(items.into_iter().map(|s| s.value).collect()),
+            id: 0,
+            depth,
+            weight,
+        });
+        Ok(())
+    }
+
+    /// Depth and weight of a container of `items` (an error past [`MAX_DEPTH`]).
+    fn children(&self, items: &[Slot]) -> Result<(usize, usize)> {
+        let depth = 1 + items.iter().map(|s| s.depth).max().unwrap_or(0);
+        if depth > MAX_DEPTH {
+            return Err(self.err(format!(
+                "values nested more than {MAX_DEPTH} deep are not supported"
+            )));
+        }
+        let weight = items.iter().fold(1usize, |w, s| w.saturating_add(s.weight));
+        Ok((depth, weight))
+    }
+
+    fn pop_slot(&mut self) -> Result<Slot> {
         if self.marks.last().is_some_and(|&m| m >= self.stack.len()) {
             return Err(self.err("stack underflow (popping past a MARK)"));
         }
-        self.stack
-            .pop()
-            .map(|s| s.value)
-            .ok_or_else(|| self.err("stack underflow"))
+        self.stack.pop().ok_or_else(|| self.err("stack underflow"))
     }
 
-    /// The values above the last MARK, removing them and the mark.
-    fn pop_mark(&mut self) -> Result<Vec<Value>> {
+    fn pop(&mut self) -> Result<Value> {
+        self.pop_slot().map(|s| s.value)
+    }
+
+    /// The entries above the last MARK, removing them and the mark.
+    fn pop_mark(&mut self) -> Result<Vec<Slot>> {
         let m = self
             .marks
             .pop()
             .ok_or_else(|| self.err("no MARK on the stack"))?;
-        Ok(self.stack.drain(m..).map(|s| s.value).collect())
+        Ok(self.stack.drain(m..).collect())
     }
 
     fn top(&mut self) -> Result<&mut Slot> {
@@ -252,17 +321,39 @@ impl<'a> Machine<'a> {
             .ok_or_else(|| Error::invalid(what, format!("pickle byte {at}"), "stack underflow"))
     }
 
+    /// Grows the top object's depth and weight by `items` added into it.
+    fn grow_top(&mut self, items: &[Slot]) -> Result<()> {
+        let (depth, weight) = self.children(items)?;
+        let top = self.top()?;
+        top.depth = top.depth.max(depth);
+        top.weight = top.weight.saturating_add(weight - 1);
+        Ok(())
+    }
+
     /// Copies the (mutated) top object into the memo entries that refer to it.
-    fn sync_top(&mut self) {
-        let Some(top) = self.stack.last() else { return };
+    fn sync_top(&mut self) -> Result<()> {
+        let Some(top) = self.stack.last() else {
+            return Ok(());
+        };
         if top.id == 0 {
-            return;
+            return Ok(());
         }
+        let (id, weight) = (top.id, top.weight);
+        let copies = self.memo.values().filter(|s| s.id == id).count();
+        self.charge(
+            self.memo
+                .len()
+                .saturating_add(copies.saturating_mul(weight)),
+        )?;
+        let Some(top) = self.stack.last() else {
+            return Ok(());
+        };
         for slot in self.memo.values_mut() {
             if slot.id == top.id {
-                slot.value = top.value.clone();
+                *slot = top.clone();
             }
         }
+        Ok(())
     }
 
     fn put(&mut self, key: u32) -> Result<()> {
@@ -271,17 +362,21 @@ impl<'a> Machine<'a> {
             .last()
             .cloned()
             .ok_or_else(|| self.err("PUT on an empty stack"))?;
+        self.charge(slot.weight)?;
         self.memo.insert(key, slot);
         Ok(())
     }
 
     fn get(&mut self, key: u32) -> Result<()> {
-        let slot = self
+        let weight = self
             .memo
             .get(&key)
-            .cloned()
+            .map(|s| s.weight)
             .ok_or_else(|| self.err(format!("memo key {key} not defined")))?;
-        self.stack.push(slot);
+        self.charge(weight)?;
+        if let Some(slot) = self.memo.get(&key).cloned() {
+            self.stack.push(slot);
+        }
         Ok(())
     }
 
@@ -359,38 +454,39 @@ impl<'a> Machine<'a> {
                 b')' => self.push(Value::Tuple(Vec::new())),
                 b't' => {
                     let items = self.pop_mark()?;
-                    self.push(Value::Tuple(items));
+                    self.push_tuple(items)?;
                 }
                 0x85..=0x87 => {
                     let n = (op - 0x84) as usize;
                     let mut items = Vec::with_capacity(n);
                     for _ in 0..n {
-                        items.push(self.pop()?);
+                        items.push(self.pop_slot()?);
                     }
                     items.reverse();
-                    self.push(Value::Tuple(items));
+                    self.push_tuple(items)?;
                 }
                 b']' => self.push_object(Value::List(Vec::new())),
                 b'a' | b'e' => {
                     let items = if op == b'a' {
-                        vec![self.pop()?]
+                        vec![self.pop_slot()?]
                     } else {
                         self.pop_mark()?
                     };
+                    self.grow_top(&items)?;
                     match &mut self.top()?.value {
-                        Value::List(l) => l.extend(items),
+                        Value::List(l) => l.extend(items.into_iter().map(|s| s.value)),
                         other => {
                             let k = kind(other);
                             return Err(self.err(format!("APPEND to a {k}")));
                         }
                     }
-                    self.sync_top();
+                    self.sync_top()?;
                 }
                 b'}' => self.push_object(Value::Dict(Vec::new())),
                 b's' | b'u' => {
                     let items = if op == b's' {
-                        let v = self.pop()?;
-                        let k = self.pop()?;
+                        let v = self.pop_slot()?;
+                        let k = self.pop_slot()?;
                         vec![k, v]
                     } else {
                         self.pop_mark()?
@@ -398,7 +494,15 @@ impl<'a> Machine<'a> {
                     if items.len() % 2 != 0 {
                         return Err(self.err("SETITEMS with an odd number of values"));
                     }
-                    let mut it = items.into_iter();
+                    self.grow_top(&items)?;
+                    // Each new key is compared with the keys already there.
+                    let keys = match &self.top()?.value {
+                        Value::Dict(d) => d.len(),
+                        _ => 0,
+                    };
+                    let pairs = items.len() / 2;
+                    self.charge(keys.saturating_add(pairs).saturating_mul(pairs))?;
+                    let mut it = items.into_iter().map(|s| s.value);
                     let mut pairs = Vec::new();
                     while let (Some(k), Some(v)) = (it.next(), it.next()) {
                         pairs.push((k, v));
@@ -418,7 +522,7 @@ impl<'a> Machine<'a> {
                             return Err(self.err(format!("SETITEM on a {k}")));
                         }
                     }
-                    self.sync_top();
+                    self.sync_top()?;
                 }
                 b'q' => {
                     let k = self.u8()? as u32;
@@ -465,8 +569,11 @@ impl<'a> Machine<'a> {
                     let state = self.pop()?;
                     let obj = std::mem::replace(&mut self.top()?.value, Value::None);
                     let built = self.build(obj, state)?;
-                    self.top()?.value = built;
-                    self.sync_top();
+                    // The result (an array or a dtype) has no children.
+                    let top = self.top()?;
+                    let id = top.id;
+                    *top = Slot::leaf(built, id);
+                    self.sync_top()?;
                 }
                 other => {
                     return Err(self.err(format!(
@@ -565,7 +672,6 @@ impl<'a> Machine<'a> {
             '=' => cfg!(target_endian = "little"),
             o => return Err(self.err(format!("dtype {}: byte order `{o}`", d.descr))),
         };
-        let n: usize = shape.iter().product();
         let size = match d.descr.as_str() {
             "f4" => 4,
             "f8" => 8,
@@ -575,12 +681,22 @@ impl<'a> Machine<'a> {
                 )));
             }
         };
-        if data.len() != n * size {
+        // Checked: a hostile shape's element count or byte size may not fit `usize`.
+        let expected = shape
+            .iter()
+            .try_fold(1usize, |n, &d| n.checked_mul(d))
+            .and_then(|n| n.checked_mul(size))
+            .ok_or_else(|| {
+                self.err(format!(
+                    "array of shape {shape:?} ({}) is too large for any file",
+                    d.descr
+                ))
+            })?;
+        if data.len() != expected {
             return Err(self.err(format!(
-                "array of shape {shape:?} ({}) holds {} bytes, expected {}",
+                "array of shape {shape:?} ({}) holds {} bytes, expected {expected}",
                 d.descr,
                 data.len(),
-                n * size
             )));
         }
         let values: Vec<f32> = if size == 4 {
@@ -608,35 +724,12 @@ impl<'a> Machine<'a> {
                 .collect()
         };
         let data = if fortran && shape.len() > 1 {
-            fortran_to_c(&values, &shape)
+            crate::io::npy::fortran_to_c(&values, &shape)
         } else {
             values
         };
         Ok(Array { shape, data })
     }
-}
-
-/// Reorders column-major (Fortran) `values` of `shape` to row-major.
-fn fortran_to_c(values: &[f32], shape: &[usize]) -> Vec<f32> {
-    let nd = shape.len();
-    let mut fstride = vec![1usize; nd];
-    for k in 1..nd {
-        fstride[k] = fstride[k - 1] * shape[k - 1];
-    }
-    let mut idx = vec![0usize; nd];
-    let mut out = Vec::with_capacity(values.len());
-    for _ in 0..values.len() {
-        out.push(values[idx.iter().zip(&fstride).map(|(i, s)| i * s).sum::<usize>()]);
-        // Advance the row-major index (last axis fastest).
-        for k in (0..nd).rev() {
-            idx[k] += 1;
-            if idx[k] < shape[k] {
-                break;
-            }
-            idx[k] = 0;
-        }
-    }
-    out
 }
 
 #[cfg(test)]
@@ -808,5 +901,39 @@ mod tests {
         a.push(b'.');
         let e = read(&a, "short").unwrap_err().to_string();
         assert!(e.contains("expected 12"), "{e}");
+    }
+
+    /// Hostile pickles: an array shape whose size overflows, values nested deeper than the
+    /// stack allows to drop, and a value doubled through the memo until memory runs out.
+    #[test]
+    fn hostile_pickles_are_errors() {
+        let mut a = array(&[1], &[1.0], "<", false, true);
+        // Shape (2^31 - 1) x 4 times: the byte count overflows 64 bits.
+        let at = a.windows(3).position(|w| w == [b'(', b'K', 1]).unwrap() + 3;
+        let mut dims = vec![b'('];
+        for _ in 0..4 {
+            dims.push(b'J');
+            dims.extend(i32::MAX.to_le_bytes());
+        }
+        dims.push(b't');
+        a.splice(at..at + 4, dims);
+        let bytes = pk(&[&[0x80, 2], &a, b"."]);
+        let e = read(&bytes, "big").unwrap_err().to_string();
+        assert!(e.contains("too large"), "{e}");
+
+        let mut deep = vec![0x80, 2, b'N'];
+        deep.extend(std::iter::repeat_n(0x85, 200_000));
+        deep.push(b'.');
+        let e = read(&deep, "deep").unwrap_err().to_string();
+        assert!(e.contains("nested"), "{e}");
+
+        // N, then 64 times: memoise, fetch twice, pair (2^64 leaves in the end).
+        let mut bomb = vec![0x80, 2, b'N'];
+        for _ in 0..64 {
+            bomb.extend([b'q', 0, b'h', 0, 0x86]);
+        }
+        bomb.push(b'.');
+        let e = read(&bomb, "bomb").unwrap_err().to_string();
+        assert!(e.contains("memo"), "{e}");
     }
 }

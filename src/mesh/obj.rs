@@ -150,12 +150,16 @@ struct Scan {
     triangles: Vec<([Corner; 3], usize)>,
 }
 
-/// Reads `v`, `vt` and `f` lines, checking syntax, finiteness and index ranges.
+/// Reads `v`, `vt`, `f` and `l` lines (and counts `vn` lines), checking syntax, finiteness
+/// and index ranges of everything tobj reads.
 fn scan(text: &str, name: &str) -> Result<Scan> {
     let mut positions = Vec::new();
     let mut uvs = Vec::new();
     // Corners as written (1-based or negative) and their line.
     let mut polygons: Vec<(Vec<(i64, i64)>, usize)> = Vec::new();
+    // Normal indices of faces and the indices of polylines, with their line.
+    let mut others: Vec<(Other, i64, usize, &str)> = Vec::new();
+    let mut normals = 0usize;
     for (i, raw) in text.lines().enumerate() {
         let line = i + 1;
         let at = || format!("{name}:{line}");
@@ -201,37 +205,41 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
                     uvs.push([v[0], v[1]]);
                 }
             }
+            "vn" => normals += 1,
+            // tobj reads the indices of polylines too (and makes faces of those with three
+            // or more corners): they are checked like the faces' ones.
+            "l" => {
+                for tok in tokens {
+                    for (k, s) in tok.split('/').enumerate() {
+                        let (kind, len) = match k {
+                            0 => (Other::Position, positions.len()),
+                            1 => (Other::Uv, uvs.len()),
+                            _ => (Other::Normal, normals),
+                        };
+                        if k > 0 && s.is_empty() {
+                            continue;
+                        }
+                        let v = parse_index(s, kind.name(), tok, &at)?;
+                        others.push((kind, resolve(v, len), line, "l"));
+                    }
+                }
+            }
             "f" => {
                 let mut corners = Vec::new();
                 for tok in tokens {
                     let mut parts = tok.split('/');
                     let p = parts.next().unwrap_or("");
                     let t = parts.next().unwrap_or("");
-                    let parse = |s: &str, what: &str| -> Result<i64> {
-                        match s.parse::<i64>() {
-                            Ok(0) => Err(Error::invalid(
-                                at(),
-                                "f",
-                                format!("{what} index 0 in `{tok}` (OBJ indices start at 1)"),
-                            )),
-                            Ok(v) => Ok(v),
-                            Err(_) if s.is_empty() && what == "UV" => Err(Error::invalid(
-                                at(),
-                                "f",
-                                format!("corner `{tok}` has no UV index (write p/t)"),
-                            )),
-                            Err(_) => Err(Error::invalid(
-                                at(),
-                                "f",
-                                format!("bad {what} index in `{tok}`"),
-                            )),
-                        }
-                    };
-                    let p = parse(p, "position")?;
-                    let t = parse(t, "UV")?;
+                    let p = parse_index(p, "position", tok, &at)?;
+                    let t = parse_index(t, "UV", tok, &at)?;
                     // Negative indices count back from the current end.
-                    let resolve = |v: i64, len: usize| if v < 0 { len as i64 + v + 1 } else { v };
                     corners.push((resolve(p, positions.len()), resolve(t, uvs.len())));
+                    // The normal index is not kept, but tobj reads it (and multiplies it
+                    // unchecked): it is checked like the others.
+                    if let Some(n) = parts.next().filter(|n| !n.is_empty()) {
+                        let n = parse_index(n, "normal", tok, &at)?;
+                        others.push((Other::Normal, resolve(n, normals), line, "f"));
+                    }
                 }
                 if corners.len() < 3 {
                     return Err(Error::invalid(
@@ -243,6 +251,26 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
                 polygons.push((corners, line));
             }
             _ => {}
+        }
+    }
+    // As tobj checks them: UVs and normals only when the file has some.
+    for (kind, v, line, field) in others {
+        let len = match kind {
+            Other::Position => positions.len(),
+            Other::Uv if uvs.is_empty() => continue,
+            Other::Uv => uvs.len(),
+            Other::Normal if normals == 0 => continue,
+            Other::Normal => normals,
+        };
+        if v < 1 || v as usize > len {
+            return Err(Error::invalid(
+                format!("{name}:{line}"),
+                field,
+                format!(
+                    "{} index {v} out of range (the file has {len})",
+                    kind.name()
+                ),
+            ));
         }
     }
     let mut triangles = Vec::new();
@@ -276,6 +304,51 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
         uvs,
         triangles,
     })
+}
+
+/// An index checked besides the faces' positions and UVs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Other {
+    Position,
+    Uv,
+    Normal,
+}
+
+impl Other {
+    fn name(self) -> &'static str {
+        match self {
+            Other::Position => "position",
+            Other::Uv => "UV",
+            Other::Normal => "normal",
+        }
+    }
+}
+
+/// A 1-based or negative OBJ index `s` of corner `tok`; `at` names the file and line.
+fn parse_index(s: &str, what: &str, tok: &str, at: &dyn Fn() -> String) -> Result<i64> {
+    match s.parse::<i64>() {
+        Ok(0) => Err(Error::invalid(
+            at(),
+            "f",
+            format!("{what} index 0 in `{tok}` (OBJ indices start at 1)"),
+        )),
+        Ok(v) => Ok(v),
+        Err(_) if s.is_empty() && what == "UV" => Err(Error::invalid(
+            at(),
+            "f",
+            format!("corner `{tok}` has no UV index (write p/t)"),
+        )),
+        Err(_) => Err(Error::invalid(
+            at(),
+            "f",
+            format!("bad {what} index in `{tok}`"),
+        )),
+    }
+}
+
+/// A negative index counts back from the current end (`len` elements so far).
+fn resolve(v: i64, len: usize) -> i64 {
+    if v < 0 { len as i64 + v + 1 } else { v }
 }
 
 #[cfg(test)]
@@ -326,5 +399,31 @@ mod tests {
             let e = UvMesh::parse(text, "m.obj").expect_err(text).to_string();
             assert!(e.contains(at) && e.contains(why), "{text:?}: {e}");
         }
+    }
+
+    /// Normal indices (which tobj multiplies unchecked) and polyline indices are checked.
+    #[test]
+    fn hostile_normal_and_polyline_indices_are_errors() {
+        let head = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\n";
+        for (tail, why) in [
+            ("f 1/1/1 2/1/1 3/1/-9223372036854775808\n", "normal index"),
+            ("f 1/1/1 2/1/1 3/1/9223372036854775807\n", "normal index"),
+            ("f 1/1/1 2/1/1 3/1/0\n", "normal index 0"),
+            ("f 1/1/1 2/1/1 3/1/x\n", "bad normal index"),
+            ("l 1/1/1 2/9223372036854775807 3/1\n", "UV index"),
+            ("l 1 2 9\n", "position index"),
+        ] {
+            let text = format!("{head}{tail}");
+            let e = UvMesh::parse(&text, "n.obj").expect_err(&text).to_string();
+            assert!(e.contains("n.obj:6") && e.contains(why), "{text:?}: {e}");
+        }
+        // In range, with and without normals in the file.
+        let m = UvMesh::parse(&format!("{head}f 1/1/1 2/1/-1 3/1/1\n"), "n.obj").unwrap();
+        assert_eq!(m.faces, vec![[0, 1, 2]]);
+        let m = UvMesh::parse(
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1/7 2/1/7 3/1/7\n",
+            "n.obj",
+        );
+        assert!(m.is_ok(), "{m:?}");
     }
 }

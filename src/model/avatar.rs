@@ -217,6 +217,53 @@ impl Avatar {
         }
     }
 
+    /// Fails naming the first parameter (by module path) with a NaN or infinite entry: an
+    /// avatar saved from a diverged run renders blank frames without a word otherwise.
+    pub fn check_finite(&self, what: &str) -> Result<()> {
+        use burn::module::{ModuleVisitor, Param};
+        #[derive(Default)]
+        struct Finite {
+            path: Vec<String>,
+            bad: Option<(String, usize, usize)>,
+        }
+        impl ModuleVisitor for Finite {
+            fn enter_module(&mut self, name: &str, _container_type: &str) {
+                self.path.push(name.to_string());
+            }
+            fn exit_module(&mut self, _name: &str, _container_type: &str) {
+                self.path.pop();
+            }
+            fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+                if self.bad.is_some() {
+                    return;
+                }
+                let data = param.val().into_data();
+                let values = data.iter::<f32>();
+                let (mut bad, mut total) = (0, 0);
+                for v in values {
+                    total += 1;
+                    bad += usize::from(!v.is_finite());
+                }
+                if bad > 0 {
+                    self.bad = Some((self.path.join("."), bad, total));
+                }
+            }
+        }
+        let mut f = Finite::default();
+        self.visit(&mut f);
+        match f.bad {
+            None => Ok(()),
+            Some((path, bad, total)) => Err(Error::invalid(
+                what,
+                path,
+                format!(
+                    "{bad} of {total} values are NaN or infinite: the avatar was saved from a \
+                     diverged run; retrain it (lower learning rates) or use an earlier checkpoint"
+                ),
+            )),
+        }
+    }
+
     /// Number of Gaussians (kept samples of the texel set-up).
     pub fn num_gaussians(&self) -> usize {
         self.lift.topology.len()

@@ -57,7 +57,10 @@ impl ConditionConfig {
 
     /// Length of the condition vector.
     pub fn dim(&self) -> usize {
-        self.expression + self.pose + self.eta
+        // Saturating: sizes come from files; `NetConfig::validate` refuses a saturated sum.
+        self.expression
+            .saturating_add(self.pose)
+            .saturating_add(self.eta)
     }
 }
 
@@ -113,6 +116,19 @@ pub struct NetConfig {
 fn invalid(what: &str, field: &str, why: String) -> Error {
     Error::invalid(what, field, why)
 }
+
+/// `side * 2^stages`, saturating at `usize::MAX` (sizes come from files).
+fn doubled(side: usize, stages: usize) -> usize {
+    u32::try_from(stages)
+        .ok()
+        .and_then(|k| 1usize.checked_shl(k))
+        .and_then(|f| side.checked_mul(f))
+        .unwrap_or(usize::MAX)
+}
+
+/// Most conditioning values a net config may take ([`ConditionConfig::dim`]): a bound on a
+/// size read from a file, far above any real conditioning.
+pub const MAX_CONDITION: usize = 1 << 16;
 
 /// `k` with `res = 8 * 2^k`, if any (k >= 1).
 fn stages_for(res: usize) -> Option<usize> {
@@ -229,12 +245,12 @@ impl NetConfig {
 
     /// Side at which the view embedding joins the appearance decoder (paper: 32).
     pub fn view_res(&self) -> usize {
-        BASE_RES << self.appearance.before_view.len()
+        doubled(BASE_RES, self.appearance.before_view.len())
     }
 
     /// Side of the view encoder's input Pluecker map (paper: 128).
     pub fn view_input_res(&self) -> usize {
-        self.view_res() << self.view.channels.len()
+        doubled(self.view_res(), self.view.channels.len())
     }
 
     /// Checks that the sizes fit together; `what` names the source in errors.
@@ -260,6 +276,17 @@ impl NetConfig {
         positive("view.channels", &self.view.channels)?;
         if self.condition.dim() == 0 {
             return Err(invalid(what, "condition", "is empty".into()));
+        }
+        if self.condition.dim() > MAX_CONDITION {
+            return Err(invalid(
+                what,
+                "condition",
+                format!(
+                    "{} values in all, more than {MAX_CONDITION} (FLAME's 100 expression \
+                     coefficients, 15 pose values and 128 eta values are 243)",
+                    self.condition.dim()
+                ),
+            ));
         }
         if self.geometry.len() != k || self.geometry.last() != Some(&GEOMETRY_CHANNELS) {
             return Err(invalid(
@@ -290,6 +317,19 @@ impl NetConfig {
             return Err(invalid(what, "view.channels", "is empty".into()));
         }
         let (input, square) = (self.view_input_res(), self.view.square_res);
+        if input > crate::limits::IMAGE_SIDE.max as usize {
+            return Err(invalid(
+                what,
+                "view.channels",
+                format!(
+                    "{} stages after {} appearance stages ask for a {input}-pixel view map, \
+                     more than {} (see crate::limits::IMAGE_SIDE)",
+                    self.view.channels.len(),
+                    self.appearance.before_view.len(),
+                    crate::limits::IMAGE_SIDE.max
+                ),
+            ));
+        }
         if square < input || !square.is_multiple_of(input) || !(square / input).is_power_of_two() {
             return Err(invalid(
                 what,
@@ -488,5 +528,26 @@ impl TexAvatarNet {
     pub fn forward_cameras(&self, condition: Tensor<2>, cameras: &[Camera]) -> Result<LocalMaps> {
         let pluecker = self.view_input(cameras, &condition.device())?;
         self.forward(condition, pluecker)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Sizes read from a file that would overflow are errors, not panics (found by
+    /// tests/fuzz.rs: `ConditionConfig::dim` and `view_input_res` used to overflow).
+    #[test]
+    fn overflowing_sizes_are_errors() {
+        let mut c = NetConfig::paper();
+        c.condition.eta = usize::MAX;
+        let e = c.validate("n.json").unwrap_err().to_string();
+        assert!(e.contains("condition"), "{e}");
+        let mut c = NetConfig::paper();
+        c.view.channels = vec![4; 200];
+        let e = c.validate("n.json").unwrap_err().to_string();
+        assert!(e.contains("view.channels"), "{e}");
+        assert_eq!(doubled(8, 70), usize::MAX);
+        assert_eq!(doubled(8, 4), 128);
     }
 }

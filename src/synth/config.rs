@@ -5,6 +5,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::limits;
 
 /// What `texavatars synth` generates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -82,12 +83,23 @@ impl SynthConfig {
         Ok(c)
     }
 
-    /// Checks ranges.
+    /// Checks ranges, and sizes against their caps ([`crate::limits`]: image sides, cameras,
+    /// frames, texture resolution).
     pub fn validate(&self, what: &str) -> Result<()> {
         let bad = |field: &str, why: &str| Err(Error::invalid(what, field, why));
         if self.width < 8 || self.height < 8 {
             return bad("width/height", "images must be at least 8x8");
         }
+        limits::check_image_size(what, "", self.width.into(), self.height.into())?;
+        limits::check_size(what, "cameras", self.cameras, &limits::CAMERAS)?;
+        limits::check_size(
+            what,
+            "frames_per_sequence",
+            self.frames_per_sequence,
+            &limits::FRAMES,
+        )?;
+        limits::check_size(what, "free_frames", self.free_frames, &limits::FRAMES)?;
+        limits::check_size(what, "texture_res", self.texture_res, &limits::TEXTURE_RES)?;
         if !(1..=8).contains(&self.supersample) {
             return bad("supersample", "must be 1 to 8");
         }
@@ -114,5 +126,70 @@ impl SynthConfig {
             return bad("eta_noise", "must be >= 0");
         }
         Ok(())
+    }
+
+    /// Timesteps of the benchmark: the ten training sequences and the test sequence at
+    /// `frames_per_sequence` each, and the FREE sequence.
+    pub fn timesteps(&self) -> u64 {
+        let seqs = crate::synth::sequences::TRAIN_FAMILIES.len() as u64 + 1;
+        (self.frames_per_sequence as u64)
+            .saturating_mul(seqs)
+            .saturating_add(self.free_frames as u64)
+    }
+
+    /// The memory a run takes (within 2x), as (field, part, bytes): `threads` views rendered
+    /// at once, each with its supersampled z-buffer and its output images; the baked maps;
+    /// the image records of the `transforms_*.json` files.
+    fn memory_parts(&self, threads: usize) -> [(&'static str, String, u64); 3] {
+        let (w, h, s) = (
+            u64::from(self.width),
+            u64::from(self.height),
+            u64::from(self.supersample),
+        );
+        let per_view = limits::product(&[w, h, s, s, limits::SYNTH_BYTES_PER_SAMPLE])
+            .saturating_add(limits::product(&[w, h, limits::SYNTH_BYTES_PER_SAMPLE]));
+        let t = self.texture_res as u64;
+        [
+            (
+                "width/height/supersample",
+                format!("{threads} views of {w}x{h} at {s}x{s} supersampling"),
+                per_view.saturating_mul(threads as u64),
+            ),
+            (
+                "texture_res",
+                format!("{t}x{t} baked maps"),
+                limits::product(&[t, t, limits::SYNTH_BYTES_PER_TEXEL]),
+            ),
+            (
+                "frames_per_sequence/free_frames/cameras",
+                "image records".to_string(),
+                limits::product(&[
+                    self.timesteps(),
+                    self.cameras as u64,
+                    limits::SYNTH_BYTES_PER_IMAGE_RECORD,
+                ]),
+            ),
+        ]
+    }
+
+    /// The memory a run with `threads` rendering threads takes (within 2x).
+    pub fn memory_estimate(&self, threads: usize) -> limits::Estimate {
+        self.memory_parts(threads)
+            .into_iter()
+            .fold(limits::Estimate::new(), |e, (_, part, b)| e.add(part, b))
+    }
+
+    /// [`SynthConfig::memory_estimate`] for this process's thread pool, checked against the
+    /// memory budget; the error names the fields of the largest part.
+    pub fn check_memory(&self, what: &str) -> Result<()> {
+        let parts = self.memory_parts(rayon::current_num_threads());
+        let field = parts
+            .iter()
+            .max_by_key(|p| p.2)
+            .map_or("width/height", |p| p.0);
+        let e = parts
+            .into_iter()
+            .fold(limits::Estimate::new(), |e, (_, part, b)| e.add(part, b));
+        limits::check_estimate(what, field, &e)
     }
 }

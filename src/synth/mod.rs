@@ -26,7 +26,15 @@
 //! exact), the 15 pose values, and eta: a fixed random projection of the frame's true
 //! wrinkle activations plus Gaussian noise (a stand-in for an image-based expression
 //! encoder). Rendering a timestep is skipped when all its files exist, so an interrupted
-//! run resumes where it stopped; files are written through temporary names.
+//! run resumes where it stopped; files are written through temporary names (`X.partial`),
+//! which a run removes when it fails and, left by a killed run, when it starts.
+//!
+//! The settings are recorded in `OUT/synth/config.json` and the head in `OUT/head/`. A run
+//! into a folder that records the same settings and head resumes it (complete timesteps are
+//! skipped, not rendered again). A folder that records different ones is refused, naming
+//! the first field that differs (or `head`), unless [`generate_with`] is called with
+//! `force`: then the files a run writes (the layout above, matched by name; nothing else)
+//! are deleted first and everything is rendered again.
 
 pub mod appearance;
 pub mod cameras;
@@ -91,29 +99,223 @@ pub fn folder_bytes(dir: &Path) -> u64 {
 }
 
 /// Generates the benchmark into `out`. `progress` receives one line per finished sequence.
+/// A folder made with other settings or another head is refused ([`generate_with`]).
 pub fn generate(
     config: &SynthConfig,
     head: &HeadAsset,
     out: &Path,
     progress: &mut dyn FnMut(&str),
 ) -> Result<Summary> {
+    generate_with(config, head, out, false, progress)
+}
+
+/// [`generate`]; with `force`, a folder made with other settings or another head is cleared
+/// of the files a run writes and generated again instead of refused (see the module docs).
+pub fn generate_with(
+    config: &SynthConfig,
+    head: &HeadAsset,
+    out: &Path,
+    force: bool,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Summary> {
     config.validate("synth config")?;
+    config.check_memory("synth config")?;
+    if let Some((what, field, why)) = recorded_difference(config, head, out)? {
+        if !force {
+            return Err(Error::invalid(
+                what,
+                field,
+                format!(
+                    "{why}: {} holds a benchmark made with other settings; re-run with --force to delete its files and generate it again, or choose another output folder",
+                    out.display()
+                ),
+            ));
+        }
+        let n = clear_owned(out, &|_| true)?;
+        progress(&format!(
+            "--force: {field} differs ({why}); removed {n} file(s) of the earlier run"
+        ));
+    }
+    let stale = clear_owned(out, &partial)?;
+    if stale > 0 {
+        progress(&format!(
+            "removed {stale} unfinished temporary file(s) of an earlier run"
+        ));
+    }
+    let r = generate_into(config, head, out, progress);
+    if r.is_err() {
+        let _ = clear_owned(out, &partial);
+    }
+    r
+}
+
+/// Whether a file name is a temporary one (`X.partial`).
+fn partial(name: &str) -> bool {
+    name.ends_with(".partial")
+}
+
+/// Where `out` holds a run made with other settings or another head: `(file, field, why)`
+/// for the first difference. `None` for a folder without a recorded run, or the same one.
+pub fn recorded_difference(
+    config: &SynthConfig,
+    head: &HeadAsset,
+    out: &Path,
+) -> Result<Option<(String, String, String)>> {
+    let cfg_path = out.join("synth/config.json");
+    let what = cfg_path.display().to_string();
+    let text = match std::fs::read_to_string(&cfg_path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(&cfg_path, e)),
+    };
+    let recorded: SynthConfig = match serde_json::from_str(&text) {
+        Ok(c) => c,
+        Err(e) => {
+            return Ok(Some((
+                what,
+                "config".into(),
+                format!("the recorded settings cannot be read ({e})"),
+            )));
+        }
+    };
+    if recorded != *config {
+        let json = |c: &SynthConfig| serde_json::to_value(c).unwrap_or_default();
+        let (old, new) = (json(&recorded), json(config));
+        let field = new
+            .as_object()
+            .and_then(|n| {
+                n.iter()
+                    .find(|(k, v)| old.get(k.as_str()) != Some(*v))
+                    .map(|(k, v)| (k.clone(), old.get(k.as_str()).cloned(), v.clone()))
+            })
+            .map(|(k, o, n)| {
+                let o = o.map_or_else(|| "nothing".into(), |o| o.to_string());
+                (k, format!("recorded {o}, now {n}"))
+            })
+            .unwrap_or_else(|| ("config".into(), "the settings differ".into()));
+        return Ok(Some((what, field.0, field.1)));
+    }
+    // The head: the files this run would write, compared with the recorded ones.
+    let head_dir = out.join("head");
+    if head_dir.join("head.npz").exists() {
+        let scratch = std::env::temp_dir().join(format!(
+            "texavatars-synth-head-{}-{}",
+            std::process::id(),
+            HEAD_CHECKS.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+        ));
+        std::fs::create_dir_all(&scratch).map_err(io_err(&scratch))?;
+        let r = write_head(head, &scratch).and_then(|()| {
+            for f in ["head.npz", "head.obj", "head.json"] {
+                let new = std::fs::read(scratch.join(f)).map_err(io_err(&scratch.join(f)))?;
+                if std::fs::read(head_dir.join(f)).ok().as_deref() != Some(new.as_slice()) {
+                    return Ok(Some((
+                        head_dir.join(f).display().to_string(),
+                        "head".to_string(),
+                        "the folder was made from another head model".to_string(),
+                    )));
+                }
+            }
+            Ok(None)
+        });
+        let _ = std::fs::remove_dir_all(&scratch);
+        return r;
+    }
+    Ok(None)
+}
+
+/// Distinguishes the scratch folders of concurrent head comparisons in one process.
+static HEAD_CHECKS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+/// Writes the head files (`head.npz`, `head.obj`, `head.json`) into `dir`.
+fn write_head(head: &HeadAsset, dir: &Path) -> Result<()> {
+    head.model.save(&dir.join("head.npz"))?;
+    let obj = dir.join("head.obj");
+    std::fs::write(&obj, head.mesh.to_obj()).map_err(io_err(&obj))?;
+    head.meta.save(&dir.join("head.json"))
+}
+
+/// Whether `name` is `DIGITS_DIGITS.ext` (an image or mask) or `DIGITS.ext`, optionally
+/// with `.partial` appended.
+fn frame_file(name: &str, ext: &str, with_camera: bool) -> bool {
+    let name = name.strip_suffix(".partial").unwrap_or(name);
+    let Some(stem) = name.strip_suffix(ext) else {
+        return false;
+    };
+    let digits = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit());
+    match (with_camera, stem.split_once('_')) {
+        (true, Some((t, c))) => digits(t) && digits(c),
+        (false, None) => digits(stem),
+        _ => false,
+    }
+}
+
+/// Removes the files a run writes into `out` (see the module docs) that `pick` also
+/// accepts; returns how many. Sub-folders and files of other names are left alone.
+fn clear_owned(out: &Path, pick: &dyn Fn(&str) -> bool) -> Result<usize> {
+    use crate::drive::outputs::clear_matching;
+    let base = |n: &str| n.strip_suffix(".partial").unwrap_or(n).to_string();
+    let mut n = 0;
+    n += clear_matching(&out.join("synth"), &|f| {
+        let b = base(f);
+        pick(f)
+            && (matches!(b.as_str(), "config.json" | "summary.json" | "albedo.png")
+                || (b.starts_with("wrinkles_") && b.ends_with(".png")))
+    })?;
+    n += clear_matching(&out.join("head"), &|f| {
+        pick(f) && matches!(base(f).as_str(), "head.npz" | "head.obj" | "head.json")
+    })?;
+    n += clear_matching(&out.join("union"), &|f| {
+        let b = base(f);
+        pick(f)
+            && (b == "canonical_flame_param.npz"
+                || ["train", "val", "test", "free"]
+                    .iter()
+                    .any(|s| b == format!("transforms_{s}.json")))
+    })?;
+    let names = sequences::TRAIN_FAMILIES
+        .iter()
+        .map(|f| f.0)
+        .chain([sequences::TEST_FAMILY.0, sequences::FREE_NAME]);
+    for seq in names {
+        let dir = out.join(seq);
+        n += clear_matching(&dir, &|f| pick(f) && base(f) == "transforms.json")?;
+        n += clear_matching(&dir.join("images"), &|f| {
+            pick(f) && frame_file(f, ".png", true)
+        })?;
+        n += clear_matching(&dir.join("fg_masks"), &|f| {
+            pick(f) && frame_file(f, ".png", true)
+        })?;
+        n += clear_matching(&dir.join("flame_param"), &|f| {
+            pick(f) && frame_file(f, ".npz", false)
+        })?;
+        n += clear_matching(&dir.join("eta"), &|f| {
+            pick(f) && frame_file(f, ".npy", false)
+        })?;
+    }
+    Ok(n)
+}
+
+fn generate_into(
+    config: &SynthConfig,
+    head: &HeadAsset,
+    out: &Path,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Summary> {
     let start = Instant::now();
     let model = &head.model;
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     // The head and the settings travel with the data.
     let head_dir = out.join("head");
     std::fs::create_dir_all(&head_dir).map_err(io_err(&head_dir))?;
-    model.save(&head_dir.join("head.npz"))?;
-    let obj = head_dir.join("head.obj");
-    std::fs::write(&obj, head.mesh.to_obj()).map_err(io_err(&obj))?;
-    head.meta.save(&head_dir.join("head.json"))?;
+    write_head(head, &head_dir)?;
     let synth_dir = out.join("synth");
     std::fs::create_dir_all(&synth_dir).map_err(io_err(&synth_dir))?;
     let cfg_path = synth_dir.join("config.json");
     let cfg_text = serde_json::to_string_pretty(config)
         .map_err(|e| Error::invalid("synth config", "json", e.to_string()))?;
-    std::fs::write(&cfg_path, cfg_text).map_err(io_err(&cfg_path))?;
+    let cfg_tmp = cfg_path.with_extension("json.partial");
+    std::fs::write(&cfg_tmp, cfg_text).map_err(io_err(&cfg_tmp))?;
+    std::fs::rename(&cfg_tmp, &cfg_path).map_err(io_err(&cfg_path))?;
 
     let appearance = appearance::bake(head, config.texture_res, config.seed)?;
     write_maps(&appearance, &synth_dir)?;

@@ -8,6 +8,7 @@ use super::constants::*;
 use super::loss::LossWeights;
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
+use crate::limits;
 use crate::model::{Ablations, AvatarConfig, NetConfig};
 
 /// The networks of a training config: a net config file (relative paths are relative to the
@@ -105,6 +106,38 @@ fn flex() -> BackendKind {
     BackendKind::Flex
 }
 
+/// Sizes of a net config that [`NetConfig::validate`] and the memory estimate compute with
+/// unchecked arithmetic: the condition's width (a sum) and the view encoder's input side
+/// (`8` shifted by the stages before the view and the view encoder's layers). A hostile
+/// config overflowing them is refused here, by [`TrainConfig::load`], before either runs.
+fn check_net_sizes(what: &str, n: &NetConfig) -> Result<()> {
+    let c = &n.condition;
+    if c.expression
+        .checked_add(c.pose)
+        .and_then(|d| d.checked_add(c.eta))
+        .is_none()
+    {
+        return Err(Error::invalid(
+            what,
+            "condition",
+            "expression + pose + eta overflows",
+        ));
+    }
+    // Sides up to 8 * 2^32; `uv_res` itself allows far fewer stages.
+    let shifts = n.appearance.before_view.len() + n.view.channels.len();
+    if shifts > 32 {
+        return Err(Error::invalid(
+            what,
+            "appearance.before_view/view.channels",
+            format!(
+                "{shifts} stages in all: the view encoder's input side 8 * 2^{shifts} is \
+                 beyond any image"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 impl TrainConfig {
     /// A config with the paper's optimiser and objective for `net`.
     pub fn new(net: NetConfig, iterations: usize, checkpoint_every: usize) -> Self {
@@ -140,13 +173,36 @@ impl TrainConfig {
                 e.to_string(),
             )
         })?;
-        if let NetSpec::File(f) = &c.net {
-            let f = if f.is_relative() {
-                path.parent().unwrap_or(Path::new(".")).join(f)
-            } else {
-                f.clone()
-            };
-            c.net = NetSpec::Inline(NetConfig::load(&f)?);
+        match &c.net {
+            NetSpec::File(f) => {
+                let f = if f.is_relative() {
+                    path.parent().unwrap_or(Path::new(".")).join(f)
+                } else {
+                    f.clone()
+                };
+                // A regular file only: a FIFO or a device (`/dev/zero`) would never end.
+                if std::fs::metadata(&f).is_ok_and(|m| !m.is_file()) {
+                    return Err(Error::invalid(
+                        &what,
+                        "net",
+                        format!("{} is not a regular file", f.display()),
+                    ));
+                }
+                let text = std::fs::read_to_string(&f).map_err(|e| Error::io(&f, e))?;
+                let net_what = f.display().to_string();
+                let n: NetConfig = serde_json::from_str(&text).map_err(|e| {
+                    Error::invalid(
+                        &net_what,
+                        format!("line {} column {}", e.line(), e.column()),
+                        e.to_string(),
+                    )
+                })?;
+                // As `NetConfig::load` does, with the sizes checked first.
+                check_net_sizes(&net_what, &n)?;
+                n.validate(&net_what)?;
+                c.net = NetSpec::Inline(n);
+            }
+            NetSpec::Inline(n) => check_net_sizes(&what, n)?,
         }
         c.validate(&what)?;
         Ok(c)
@@ -180,10 +236,14 @@ impl TrainConfig {
         serde_json::to_string_pretty(self).expect("a TrainConfig serialises") + "\n"
     }
 
-    /// Checks ranges; `what` names the source in errors.
+    /// Checks ranges, the caps of [`limits::BATCH_SIZE`] and [`limits::UV_RES`], and the
+    /// memory of a training step without the frames' images
+    /// ([`TrainConfig::memory_estimate`] with `None`: the image size is the data's) against
+    /// the budget; `what` names the source in errors.
     pub fn validate(&self, what: &str) -> Result<()> {
         let bad = |field: &str, why: &str| Err(Error::invalid(what, field, why));
         if let NetSpec::Inline(n) = &self.net {
+            limits::check_size(what, "net.uv_res", n.uv_res, &limits::UV_RES)?;
             n.validate(what)?;
         }
         if self.iterations == 0 {
@@ -192,6 +252,7 @@ impl TrainConfig {
         if self.batch_size == 0 {
             return bad("batch_size", "must be at least 1");
         }
+        limits::check_size(what, "batch_size", self.batch_size, &limits::BATCH_SIZE)?;
         if self.checkpoint_every == 0 {
             return bad("checkpoint_every", "must be at least 1");
         }
@@ -222,7 +283,125 @@ impl TrainConfig {
         if weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
             return bad("loss", "weights must be finite and >= 0");
         }
+        if let Some(e) = self.memory_estimate(None) {
+            let field = if self.batch_size > 1 {
+                "batch_size"
+            } else {
+                "net"
+            };
+            limits::check_estimate(what, field, &e)?;
+        }
         Ok(())
+    }
+
+    /// The memory of a training run (within 2x; `None` for an unresolved
+    /// [`NetSpec::File`]): the parameters with their gradients and Adam's two moments, and
+    /// per frame of a batch the networks' activations kept for the backward pass (every
+    /// layer's output three times: pre-activation, activation, gradient) with the largest
+    /// transposed convolution's column buffer (forward and backward), the lifting's
+    /// per-texel attributes and gradients (64 floats per texel of R^2) and the Gaussians
+    /// (one per texel at most, [`limits::GAUSSIAN_BYTES`] forward and again backward).
+    /// With `image_pixels` (the frames' width x height) it adds per frame the rasterizer's
+    /// forward and backward buffers, the ground truth, L1 and SSIM maps (512 B per pixel) and,
+    /// with the VGG loss on, VGG16's activations of render and target (4.5 KiB per pixel).
+    pub fn memory_estimate(&self, image_pixels: Option<u64>) -> Option<limits::Estimate> {
+        let NetSpec::Inline(n) = &self.net else {
+            return None;
+        };
+        let sat = |f: &[usize]| limits::product(&f.iter().map(|&x| x as u64).collect::<Vec<_>>());
+        let base = crate::model::constants::BASE_RES;
+        // Parameters and per-frame activations and column buffers, in floats.
+        #[derive(Default)]
+        struct Count {
+            params: u64,
+            acts: u64,
+            col: u64,
+        }
+        impl Count {
+            fn add(&mut self, params: u64, acts: u64) {
+                self.params = self.params.saturating_add(params);
+                self.acts = self.acts.saturating_add(acts);
+            }
+        }
+        let mut k = Count::default();
+        k.add(
+            sat(&[n.condition.dim(), n.code_channels, base, base]),
+            sat(&[n.code_channels, base, base]),
+        );
+        // A transposed convolution (4x4, stride 2) from `c_in` at `side` to `c_out` at twice
+        // the side; returns the new side.
+        let up = |k: &mut Count, c_in: usize, c_out: usize, side: usize| {
+            let out = side.saturating_mul(2);
+            let bias = if n.untied_bias {
+                sat(&[c_out, out, out])
+            } else {
+                c_out as u64
+            };
+            k.add(
+                sat(&[c_in, c_out, 16]).saturating_add(bias),
+                sat(&[c_out, out, out]),
+            );
+            k.col = k.col.max(sat(&[c_in, 16, side, side]));
+            out
+        };
+        let (mut c, mut side) = (n.code_channels, base);
+        for &g in &n.geometry {
+            side = up(&mut k, c, g, side);
+            c = g;
+        }
+        let (mut c, mut side) = (n.code_channels, base);
+        for &a in &n.appearance.before_view {
+            side = up(&mut k, c, a, side);
+            c = a;
+        }
+        c = c.saturating_add(n.view.channels.last().copied().unwrap_or(0));
+        for &m in &n.appearance.mid {
+            k.add(sat(&[c, m, 9]), sat(&[m, side, side]));
+            c = m;
+        }
+        for &a in &n.appearance.after_view {
+            side = up(&mut k, c, a, side);
+            c = a;
+        }
+        let sq = n.view.square_res;
+        k.add(0, sat(&[6, sq, sq]));
+        let (mut c, mut side) = (6usize, n.view_input_res());
+        for &v in &n.view.channels {
+            side /= 2;
+            k.add(sat(&[c, v, 9]), sat(&[v, side, side]));
+            c = v;
+        }
+        let Count { params, acts, col } = k;
+        let r = n.uv_res;
+        let batch = self.batch_size as u64;
+        let per_frame = acts
+            .saturating_mul(3)
+            .saturating_add(col.saturating_mul(2))
+            .saturating_add(sat(&[r, r, 64]))
+            .saturating_mul(4)
+            .saturating_add(limits::product(&[
+                r as u64,
+                r as u64,
+                2 * limits::GAUSSIAN_BYTES,
+            ]));
+        let mut e = limits::Estimate::new()
+            .add(
+                format!("{params} parameters with gradients and Adam moments"),
+                params.saturating_mul(16),
+            )
+            .add(
+                format!("activations of {batch} frame(s) at R_uv {r}"),
+                per_frame.saturating_mul(batch),
+            );
+        if let Some(px) = image_pixels {
+            let vgg = self.ablations.vgg && self.loss.vgg > 0.0;
+            let per_px: u64 = 512 + if vgg { 4608 } else { 0 };
+            e = e.add(
+                format!("images of {batch} frame(s)"),
+                limits::product(&[px, per_px, batch]),
+            );
+        }
+        Some(e)
     }
 
     /// Whether `other` trains the same run (everything but `iterations`, `val_frames`,

@@ -10,7 +10,12 @@
 //! B` of an endless sequence of passes over the dataset, each pass a permutation of all
 //! frames drawn from `(seed, pass)`. The order is a pure function of the seed and the
 //! iteration, so a resumed run sees exactly the frames the uninterrupted run would have seen.
+//!
+//! Stops: the training loader ends an epoch early when its [`StopControl`] asks for it
+//! (signal, iteration limit), after recording where ([`IterationRecord`]); see
+//! [`super::stop`].
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -18,6 +23,7 @@ use burn::data::dataloader::{DataLoader, DataLoaderIterator, Progress};
 use burn::data::dataset::DatasetError;
 use burn::tensor::Device;
 
+use super::stop::{IterationRecord, StopControl};
 use crate::data::{HeadBatch, HeadBatcher, HeadDataset};
 use crate::splat::demo::Pcg;
 
@@ -41,6 +47,10 @@ pub struct Schedule {
     pub total: usize,
     /// Frames per iteration.
     pub batch_size: usize,
+    /// `Some((e, n))`: a run resumed from a checkpoint taken in the middle of an interval
+    /// ([`IterationRecord`]): its first epoch `e` starts at iteration `n` (before
+    /// `e * per_epoch`), so it also trains the rest of the stopped interval.
+    pub resume: Option<(usize, usize)>,
 }
 
 impl Schedule {
@@ -51,8 +61,12 @@ impl Schedule {
 
     /// The iterations of (0-based) epoch `e`.
     pub fn iterations_of(&self, e: usize) -> std::ops::Range<usize> {
-        let start = (e * self.per_epoch).min(self.total);
-        start..((e + 1) * self.per_epoch).min(self.total)
+        let end = ((e + 1) * self.per_epoch).min(self.total);
+        let start = match self.resume {
+            Some((first, n)) if first == e => n.min(end),
+            _ => (e * self.per_epoch).min(self.total),
+        };
+        start..end
     }
 }
 
@@ -92,6 +106,9 @@ pub struct FrameLoader {
     device: Device,
     /// Item range of an epoch this loader is restricted to ([`DataLoader::slice`]).
     range: Option<(usize, usize)>,
+    /// Ends epochs early when a stop is requested; training loaders also record where in
+    /// the checkpoint folder.
+    stop: Option<(StopControl, Option<PathBuf>)>,
 }
 
 impl std::fmt::Debug for FrameLoader {
@@ -121,7 +138,16 @@ impl FrameLoader {
             },
             device: device.clone(),
             range: None,
+            stop: None,
         }
+    }
+
+    /// Stops at `stop`'s request: a training loader ends the epoch after the step in progress
+    /// (writing an [`IterationRecord`] into `checkpoints` for the checkpoint burn then takes)
+    /// and, at the next epoch, sets burn's interrupter; a validation loader yields nothing.
+    pub fn with_stop(mut self, stop: StopControl, checkpoints: Option<PathBuf>) -> Self {
+        self.stop = Some((stop, checkpoints));
+        self
     }
 
     /// A validation loader over the frames `indices` of `dataset`, one frame per batch.
@@ -131,6 +157,7 @@ impl FrameLoader {
             frames: Frames::Fixed(Arc::new(indices)),
             device: device.clone(),
             range: None,
+            stop: None,
         }
     }
 
@@ -195,18 +222,67 @@ struct FrameIter<'a> {
     plan: std::vec::IntoIter<(usize, Vec<usize>)>,
     done: usize,
     total: usize,
+    /// burn's 1-based number of this epoch (training loaders only).
+    epoch: Option<usize>,
+}
+
+impl FrameIter<'_> {
+    /// Whether to end the pass here, before `iteration`. A training epoch that trained
+    /// something records where it stopped (burn checkpoints it next); a validation pass ends
+    /// on a signal only, and never sets burn's interrupter (that would skip the checkpoint).
+    fn stops_before(&self, iteration: usize) -> bool {
+        let Some((stop, records)) = &self.loader.stop else {
+            return false;
+        };
+        let Some(epoch) = self.epoch else {
+            return stop.signal().is_some();
+        };
+        if !stop.stops_before(iteration) {
+            return false;
+        }
+        if self.done == 0 {
+            // Nothing trained in this epoch: no checkpoint for it.
+            stop.interrupter.stop(Some("stop requested"));
+        } else if let Some(dir) = records {
+            let record = IterationRecord {
+                checkpoint: epoch,
+                iteration,
+            };
+            if let Err(e) = record.save(dir) {
+                // Without the record the checkpoint would claim a whole interval.
+                eprintln!("train: {e}; stopping without a checkpoint");
+                stop.interrupter
+                    .stop(Some("the iteration record could not be written"));
+            }
+        }
+        stop.mark_stopped_at(iteration);
+        true
+    }
 }
 
 impl Iterator for FrameIter<'_> {
     type Item = Result<TrainBatch, DatasetError>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        let (iteration, frames) = self.plan.next()?;
-        self.done += frames.len();
+        let (iteration, frames) = self.plan.as_slice().first()?.clone();
+        if self.stops_before(iteration) {
+            self.plan = Vec::new().into_iter();
+            return None;
+        }
         let items: Result<Vec<_>, _> = frames
             .iter()
             .map(|&i| self.loader.dataset.load_item(i))
             .collect();
+        if let (Err(e), Some((stop, _)), Some(_)) = (&items, &self.loader.stop, self.epoch) {
+            // An unreadable frame: checkpoint what was trained and let `train` report it.
+            stop.data_error(iteration, e.to_string());
+            if self.stops_before(iteration) {
+                self.plan = Vec::new().into_iter();
+                return None;
+            }
+        }
+        self.plan.next();
+        self.done += frames.len();
         Some(
             items
                 .and_then(|items| HeadBatcher.try_batch(items, &self.loader.device))
@@ -232,13 +308,29 @@ impl DataLoader<TrainBatch> for FrameLoader {
             Frames::Schedule { next_epoch, .. } => Some(next_epoch.fetch_add(1, Ordering::SeqCst)),
             Frames::Fixed(_) => None,
         };
-        let plan = self.plan(epoch);
+        let mut plan = self.plan(epoch);
+        if let Some((stop, _)) = &self.stop
+            && epoch.is_some()
+        {
+            // The epoch after a stopped one, or one that may not start: burn ends the run
+            // without another checkpoint.
+            let first = plan.first().map(|(it, _)| *it);
+            let stop_now = first.filter(|&it| stop.stops_before(it));
+            if stop.stopped_at().is_some() || stop_now.is_some() {
+                stop.interrupter.stop(Some("stop requested"));
+                if let Some(it) = stop_now.filter(|_| stop.stopped_at().is_none()) {
+                    stop.mark_stopped_at(it);
+                }
+                plan.clear();
+            }
+        }
         let total = plan.iter().map(|(_, f)| f.len()).sum();
         Box::new(FrameIter {
             loader: self,
             plan: plan.into_iter(),
             done: 0,
             total,
+            epoch: epoch.map(|e| e + 1),
         })
     }
 

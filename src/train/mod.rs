@@ -15,6 +15,10 @@
 //! - Metrics (the objective, each term, PSNR) are burn metrics ([`metrics`]): logged by
 //!   burn under `OUT/train/epoch-E/` and `OUT/valid/epoch-E/`, printed by [`progress`].
 //!
+//! - Stops: a signal (SIGINT, SIGTERM), `stop_after` or a non-finite loss or gradient stop a
+//!   run without losing work or saving a broken avatar ([`stop`], [`signals`]); one run per
+//!   folder at a time ([`lock`]).
+//!
 //! Seeds: the device is seeded with the config's seed before the networks are built, and the
 //! frame order is a function of the seed and the iteration.
 
@@ -25,7 +29,9 @@ pub mod lock;
 pub mod loss;
 pub mod metrics;
 pub mod progress;
+pub mod signals;
 pub mod step;
+pub mod stop;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -35,7 +41,7 @@ use burn::lr_scheduler::module_lr_scheduler::{ModuleLrScheduler, ModuleLrSchedul
 use burn::module::{Module, ParamGroup};
 use burn::optim::{AdamConfig, ModuleOptimizer};
 use burn::train::checkpoint::{Checkpoint, KeepLastNCheckpoints};
-use burn::train::{Interrupter, Learner, SupervisedTraining};
+use burn::train::{Learner, SupervisedTraining};
 
 pub use config::{NetSpec, TrainConfig};
 pub use loader::{FrameLoader, Schedule, TrainBatch};
@@ -43,8 +49,9 @@ pub use loss::{LossTerms, LossWeights, objective};
 pub use metrics::{Term, TermMetric};
 pub use progress::ProgressPrinter;
 pub use step::{AvatarTraining, Objective, StepOutput};
+pub use stop::{Fault, IterationRecord, StopControl};
 
-use crate::data::{HeadDataset, Split};
+use crate::data::{HeadDataset, PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::head::HeadAsset;
@@ -85,9 +92,19 @@ pub struct TrainOptions {
     /// Install burn's application logger (`out/experiment.log`); it is process-global, so
     /// library callers that train several times may turn it off.
     pub app_log: bool,
-    /// Stop at the first checkpoint after at least this many iterations of this process (the
-    /// run's count continues with `--resume`; tests use it to interrupt a run).
+    /// Stop after this many iterations of this process, with a checkpoint (the run's count
+    /// continues with `--resume`; tests use it to interrupt a run).
     pub stop_after: Option<usize>,
+    /// Stop on SIGINT / SIGTERM with a checkpoint ([`signals`]); the command line turns it
+    /// on, library callers may leave the process's signals alone.
+    pub handle_signals: bool,
+    /// Stops the run from elsewhere ([`StopControl::request`]); `None`: a private one.
+    pub stop: Option<StopControl>,
+    /// Start afresh even when `out` holds a run or a finished avatar: train's own files
+    /// there are removed first ([`OWNED`]).
+    pub force: bool,
+    /// Where the dataset's files may live ([`PathPolicy`]; `--allow-outside-paths`).
+    pub paths: PathPolicy,
 }
 
 impl TrainOptions {
@@ -102,6 +119,10 @@ impl TrainOptions {
             head: None,
             app_log: true,
             stop_after: None,
+            handle_signals: false,
+            stop: None,
+            force: false,
+            paths: PathPolicy::InsideRoot,
         }
     }
 }
@@ -119,8 +140,40 @@ pub struct TrainReport {
     pub gaussians: usize,
     /// Wall time of this process's training.
     pub seconds: f64,
-    /// Where the trained avatar was written (`out/avatar.bpk`).
+    /// Where the trained avatar is written (`out/avatar.bpk`); only a complete run writes it.
     pub avatar_path: PathBuf,
+    /// Whether the run reached its last iteration (else it stopped with a checkpoint).
+    pub complete: bool,
+}
+
+/// What `train` writes into its output folder, removed by [`TrainOptions::force`].
+pub const OWNED: [&str; 8] = [
+    files::CONFIG,
+    files::AVATAR_CONFIG,
+    files::AVATAR,
+    files::CHECKPOINTS,
+    files::IDENTITY,
+    "train",
+    "valid",
+    "experiment.log",
+];
+
+/// Removes `*.tmp` files in `dir` (not below): scratch files of writes that a killed process
+/// never finished (burn's checkpoint store writes `<name>.<pid>-<n>.tmp` and renames it).
+/// Call only while holding the run's lock, when no writer can be running.
+pub fn remove_stale_tmp(dir: &Path) -> Result<usize> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(0);
+    };
+    let mut n = 0;
+    for e in entries.flatten() {
+        let p = e.path();
+        if p.extension().is_some_and(|x| x == "tmp") && p.is_file() {
+            std::fs::remove_file(&p).map_err(|err| Error::io(&p, err))?;
+            n += 1;
+        }
+    }
+    Ok(n)
 }
 
 /// The newest epoch of `dir` (burn's checkpoint folder) whose model, optimiser and
@@ -210,10 +263,58 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         net.condition.expression = head.model.num_expr;
     }
     let avatar_config: AvatarConfig = config.avatar()?;
+
+    // Every frame's files, before anything is written or removed (issue 15.5).
+    let model = Arc::new(head.model.clone());
+    let checking = Instant::now();
+    let train_set = Arc::new(HeadDataset::open_with(
+        &options.data,
+        Split::Train,
+        model.clone(),
+        options.paths,
+    )?);
+    if train_set.is_empty() {
+        return Err(Error::invalid(
+            train_set.transforms_path().display().to_string(),
+            "frames",
+            "the training split has no frames",
+        ));
+    }
+    let checked = train_set.check_files()?;
+    let val_file = options.data.join(Split::Val.file_name());
+    let val_set = if config.val_frames > 0 && val_file.is_file() {
+        let v = HeadDataset::open_with(&options.data, Split::Val, model.clone(), options.paths)?;
+        v.check_files()?;
+        Some(Arc::new(v))
+    } else {
+        None
+    };
+    eprintln!(
+        "train: checked {} frames and {} timesteps{} in {:.1} s",
+        checked.frames,
+        checked.timesteps,
+        match &val_set {
+            Some(v) => format!(" (and {} validation frames)", v.len()),
+            None => String::new(),
+        },
+        checking.elapsed().as_secs_f64()
+    );
+
     let out = &options.out;
     let ckpt_dir = out.join(files::CHECKPOINTS);
     // One run per folder at a time, for the run's whole life (crate::train::lock).
     let _lock = lock::RunLock::acquire(out)?;
+
+    // Scratch files of writes a killed run never finished.
+    for dir in [out.clone(), ckpt_dir.clone()] {
+        let n = remove_stale_tmp(&dir)?;
+        if n > 0 {
+            eprintln!(
+                "train: removed {n} unfinished temporary file(s) in {}",
+                dir.display()
+            );
+        }
+    }
 
     // Resume: the saved config must describe the same run.
     let checkpoint = if options.resume {
@@ -235,33 +336,46 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         }
         c
     } else {
-        if latest_checkpoint(&ckpt_dir).is_some() {
-            return Err(Error::invalid(
-                out.display().to_string(),
-                "checkpoint",
-                "already holds a training run; pass --resume to continue it or choose another --out",
-            ));
+        let finished = out.join(files::AVATAR).exists();
+        if latest_checkpoint(&ckpt_dir).is_some() || finished {
+            if !options.force {
+                return Err(Error::invalid(
+                    out.display().to_string(),
+                    if finished { "avatar.bpk" } else { "checkpoint" },
+                    "already holds a training run; pass --resume to continue it, --force to \
+                     replace it, or choose another --out",
+                ));
+            }
+            for name in OWNED {
+                let p = out.join(name);
+                let r = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else if p.exists() {
+                    std::fs::remove_file(&p)
+                } else {
+                    Ok(())
+                };
+                r.map_err(|e| Error::io(&p, e))?;
+            }
+            eprintln!(
+                "train: --force: removed the earlier run in {}",
+                out.display()
+            );
         }
         None
+    };
+    // Records of checkpoints that were never written; the newest's, when it was taken in the
+    // middle of an interval (a stopped run).
+    IterationRecord::remove_after(&ckpt_dir, checkpoint.unwrap_or(0))?;
+    let resume_at = match checkpoint {
+        Some(c) => IterationRecord::load(&ckpt_dir, c)?.map(|r| (c, r.iteration)),
+        None => None,
     };
 
     let backend = options.backend.unwrap_or(config.backend);
     let device = backend.autodiff_device();
     device.seed(config.seed);
 
-    let model = Arc::new(head.model.clone());
-    let train_set = Arc::new(HeadDataset::open(
-        &options.data,
-        Split::Train,
-        model.clone(),
-    )?);
-    if train_set.is_empty() {
-        return Err(Error::invalid(
-            train_set.transforms_path().display().to_string(),
-            "frames",
-            "the training split has no frames",
-        ));
-    }
     let avatar = avatar_config.init(&head.mesh, &device)?;
     // One frame through the checks the step cannot report (it may only panic).
     let probe = train_set.load_item(0)?;
@@ -292,12 +406,14 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     } else {
         None
     };
+    let stop = options.stop.clone().unwrap_or_default();
     let training = AvatarTraining {
         avatar,
         objective: Objective {
             weights: config.loss.clone(),
             vgg,
             vgg_from: config.vgg_from(),
+            guard: Some(stop.clone()),
         },
     };
     let gaussians = training.avatar.num_gaussians();
@@ -318,21 +434,29 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         per_epoch: config.checkpoint_every,
         total: config.iterations,
         batch_size: config.batch_size,
+        resume: resume_at,
     };
     let start_epoch = checkpoint.unwrap_or(0);
     let start_iteration = schedule.iterations_of(start_epoch).start;
-    let mut epochs = schedule.epochs();
+    // A run stopped in its last interval has its remaining iterations in one more epoch.
+    let epochs = schedule
+        .epochs()
+        .max(start_epoch + usize::from(start_iteration < schedule.total));
+    let end_iteration = schedule.iterations_of(epochs.saturating_sub(1)).end;
     if let Some(n) = options.stop_after {
-        // Whole checkpoint intervals only: burn stops between epochs.
-        epochs = epochs.min(start_epoch + n.div_ceil(schedule.per_epoch));
+        stop.stop_before(start_iteration + n);
     }
+    let _signals = if options.handle_signals {
+        Some(signals::SignalGuard::install(&stop)?)
+    } else {
+        None
+    };
     eprintln!(
-        "train: {} frames, {} Gaussians (R = S = {}), {} backend, iterations {start_iteration}..{} of {}, VGG from iteration {}",
+        "train: {} frames, {} Gaussians (R = S = {}), {} backend, iterations {start_iteration}..{end_iteration} of {}, VGG from iteration {}",
         train_set.len(),
         gaussians,
         avatar_config.net.uv_res,
         format!("{backend:?}").to_lowercase(),
-        schedule.iterations_of(epochs.saturating_sub(1)).end,
         schedule.total,
         if config.ablations.vgg {
             config.vgg_from().to_string()
@@ -342,18 +466,18 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     );
 
     // Validation: the held-out camera's frames when the export has them.
-    let val_file = options.data.join(Split::Val.file_name());
-    let valid_loader = if config.val_frames > 0 && val_file.is_file() {
-        let val_set = Arc::new(HeadDataset::open(&options.data, Split::Val, model)?);
+    let valid_loader = if let Some(val_set) = val_set {
         let val_indices = FrameLoader::spread(val_set.len(), config.val_frames);
         FrameLoader::fixed(val_set, val_indices, &device.clone().inner())
+            .with_stop(stop.clone(), None)
     } else {
         if config.val_frames > 0 {
             eprintln!("train: no {}: no validation", val_file.display());
         }
         FrameLoader::fixed(train_set.clone(), Vec::new(), &device.clone().inner())
     };
-    let train_loader = FrameLoader::training(train_set, schedule.clone(), start_epoch, &device);
+    let train_loader = FrameLoader::training(train_set, schedule.clone(), start_epoch, &device)
+        .with_stop(stop.clone(), Some(ckpt_dir.clone()));
 
     let mut builder = SupervisedTraining::new(out, Arc::new(train_loader), Arc::new(valid_loader))
         .metrics((
@@ -369,11 +493,10 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         ))
         .with_default_checkpointers()
         .with_checkpointing_strategy(KeepLastNCheckpoints::new(KEEP_CHECKPOINTS))
-        .renderer(Box::new(ProgressPrinter::new(
-            schedule.clone(),
-            config.log_every,
-        )))
-        .with_interrupter(Interrupter::new())
+        .renderer(Box::new(
+            ProgressPrinter::new(schedule.clone(), config.log_every).with_stop(stop.clone()),
+        ))
+        .with_interrupter(stop.interrupter.clone())
         .num_epochs(epochs);
     if !options.app_log {
         builder = builder.with_application_logger(None);
@@ -385,6 +508,50 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     let t0 = Instant::now();
     let result = builder.launch(learner);
     let seconds = t0.elapsed().as_secs_f64();
+    remove_stale_tmp(&ckpt_dir)?;
+    let resume_hint = format!(
+        "resume with `texavatars train --data {} --config CONFIG --out {} --resume`",
+        options.data.display(),
+        out.display()
+    );
+    if let Some(fault) = stop.take_fault() {
+        let values: Vec<String> = fault
+            .values
+            .iter()
+            .map(|(n, v)| format!("{n} {v:.6}"))
+            .collect();
+        let kept = match latest_checkpoint(&ckpt_dir) {
+            Some(c) => format!(
+                "the last good checkpoint is {c} (iteration {}); lower the learning rates and {resume_hint}",
+                checkpoint_iteration(&schedule, &ckpt_dir, c)
+            ),
+            None => "no checkpoint was written yet".into(),
+        };
+        return Err(Error::invalid(
+            "training",
+            format!("iteration {}", fault.iteration),
+            format!(
+                "not finite: {} ({}); stopped without saving this state: {kept}",
+                fault.culprits().join(", "),
+                values.join(", ")
+            ),
+        ));
+    }
+    if let Some((iteration, e)) = stop.take_data_error() {
+        let kept = match latest_checkpoint(&ckpt_dir) {
+            Some(c) => format!(
+                "checkpoint {c} in {} holds iterations 0..{}; fix the file and {resume_hint}",
+                ckpt_dir.display(),
+                checkpoint_iteration(&schedule, &ckpt_dir, c)
+            ),
+            None => "no checkpoint was written yet; fix the file and start again".into(),
+        };
+        return Err(Error::invalid(
+            "training",
+            format!("iteration {iteration}"),
+            format!("a frame could not be read: {e}; {kept}"),
+        ));
+    }
     if let Some(e) = result.error {
         return Err(Error::invalid(
             out.display().to_string(),
@@ -392,18 +559,54 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
             format!("stopped by an error: {e}"),
         ));
     }
+    let reached = stop
+        .stopped_at()
+        .unwrap_or(end_iteration)
+        .min(end_iteration);
+    let complete = reached == schedule.total;
     let avatar = result.model.avatar;
     let avatar_path = out.join(files::AVATAR);
-    avatar
-        .clone()
-        .save_file(&avatar_path)
-        .map_err(|e| Error::invalid(avatar_path.display().to_string(), "save", e.to_string()))?;
+    if complete {
+        avatar.clone().save_file(&avatar_path).map_err(|e| {
+            Error::invalid(avatar_path.display().to_string(), "save", e.to_string())
+        })?;
+    } else {
+        let saved = match latest_checkpoint(&ckpt_dir) {
+            Some(c) => format!(
+                "checkpoint {c} in {} holds iterations 0..{}",
+                ckpt_dir.display(),
+                checkpoint_iteration(&schedule, &ckpt_dir, c)
+            ),
+            None => "no checkpoint was written".into(),
+        };
+        let message = format!(
+            "train: stopped at iteration {reached} of {}; {saved}; {resume_hint}",
+            schedule.total
+        );
+        if let Some(signal) = stop.signal() {
+            return Err(Error::Stopped {
+                signal,
+                message: format!("{} ({message})", signals::name(signal)),
+            });
+        }
+        eprintln!("{message}");
+    }
     Ok(TrainReport {
         start_iteration,
-        end_iteration: schedule.iterations_of(epochs.saturating_sub(1)).end,
+        end_iteration: reached,
         avatar,
         gaussians,
         seconds,
         avatar_path,
+        complete,
     })
+}
+
+/// The global iterations checkpoint `c` (1-based) holds: its [`IterationRecord`] when it
+/// was taken in the middle of an interval, else the end of interval `c`.
+pub fn checkpoint_iteration(schedule: &Schedule, ckpt_dir: &Path, c: usize) -> usize {
+    match IterationRecord::load(ckpt_dir, c) {
+        Ok(Some(r)) => r.iteration,
+        _ => (c * schedule.per_epoch).min(schedule.total),
+    }
 }

@@ -16,6 +16,7 @@ use burn::train::renderer::{
 
 use super::loader::Schedule;
 use super::metrics::Term;
+use super::stop::StopControl;
 
 /// Running sums of one metric since the last printed line.
 #[derive(Clone, Copy, Debug, Default)]
@@ -40,6 +41,8 @@ pub struct ProgressPrinter {
     start_iteration: usize,
     started: Option<Instant>,
     window_start: Option<(Instant, usize)>,
+    /// Where the run stopped early, for the checkpoint line.
+    stop: Option<StopControl>,
 }
 
 impl ProgressPrinter {
@@ -58,7 +61,14 @@ impl ProgressPrinter {
             start_iteration: 0,
             started: None,
             window_start: None,
+            stop: None,
         }
+    }
+
+    /// Names the iteration a stopped run's last checkpoint holds ([`StopControl`]).
+    pub fn with_stop(mut self, stop: StopControl) -> Self {
+        self.stop = Some(stop);
+        self
     }
 
     /// Global iterations done after `items` items of the current epoch.
@@ -166,7 +176,12 @@ impl TrainingProgressLogger for ProgressPrinter {
     }
 
     fn update_epoch(&mut self, epoch: usize) {
-        let it = self.schedule.iterations_of(epoch - 1).end;
+        let end = self.schedule.iterations_of(epoch - 1).end;
+        let it = self
+            .stop
+            .as_ref()
+            .and_then(|s| s.stopped_at())
+            .map_or(end, |s| s.min(end));
         eprintln!("train: iteration {it}: checkpoint {epoch}");
         self.epoch = epoch + 1;
     }

@@ -3,7 +3,8 @@
 
 use std::sync::Arc;
 
-use burn::module::Module;
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
 use burn::train::metric::ItemLazy;
 use burn::train::{InferenceStep, TrainOutput, TrainStep};
@@ -11,6 +12,7 @@ use burn::train::{InferenceStep, TrainOutput, TrainStep};
 use super::loader::TrainBatch;
 use super::loss::{LossTerms, LossWeights, objective};
 use super::metrics::{Term, TermsInput};
+use super::stop::{Fault, StopControl};
 use crate::metrics::{VggPerceptual, psnr};
 use crate::model::Avatar;
 
@@ -24,6 +26,9 @@ pub struct Objective {
     pub vgg: Option<Arc<VggPerceptual>>,
     /// The first (0-based) iteration that includes the VGG loss.
     pub vgg_from: usize,
+    /// Checks every step's loss terms and gradients and reports a non-finite one here
+    /// ([`super::stop`]); `None`: no check (and no read-back of the loss in the step).
+    pub guard: Option<StopControl>,
 }
 
 impl std::fmt::Debug for Objective {
@@ -32,6 +37,7 @@ impl std::fmt::Debug for Objective {
             .field("weights", &self.weights)
             .field("vgg", &self.vgg.is_some())
             .field("vgg_from", &self.vgg_from)
+            .field("guard", &self.guard.is_some())
             .finish()
     }
 }
@@ -86,6 +92,15 @@ impl StepOutput {
             values: Tensor::cat(values, 0).detach(),
             host: None,
             batch_size,
+        }
+    }
+
+    /// Reads the values to the host now (a step that checks them).
+    pub fn synced(self) -> Self {
+        let host = read_host(&self.values);
+        StepOutput {
+            host: Some(host),
+            ..self
         }
     }
 
@@ -157,12 +172,61 @@ impl TrainStep for AvatarTraining {
     /// # Panics
     /// When the batch does not fit the avatar (vertex count, condition width); [`super::train`]
     /// checks the dataset against the avatar before training starts.
+    ///
+    /// With a [`Objective::guard`], the step reads its loss terms and the gradients' L1 norm
+    /// back (one small read per step) and reports a non-finite one: burn then stops before
+    /// the next checkpoint ([`super::stop`]). PSNR may be infinite (a perfect render) and is
+    /// not checked.
     fn step(&self, item: TrainBatch) -> TrainOutput<StepOutput> {
         let n = item.batch.cameras.len();
         let (terms, psnr) = self.losses(&item, self.objective.vgg_at(item.iteration));
-        let grads = terms.total.backward();
-        TrainOutput::new(self, grads, StepOutput::new(&terms, psnr, n))
+        let grads = GradientsParams::from_grads(terms.total.backward(), self);
+        let mut out = StepOutput::new(&terms, psnr, n);
+        if let Some(guard) = &self.objective.guard {
+            out = out.synced();
+            let mut values: Vec<(String, f64)> = Term::ALL
+                .iter()
+                .zip(out.host_values())
+                .map(|(t, v)| (t.name().to_string(), v))
+                .collect();
+            values.push(("gradient L1".into(), gradient_l1(&grads, self)));
+            let fault = values
+                .iter()
+                .any(|(name, v)| name != Term::Psnr.name() && !v.is_finite());
+            if fault {
+                guard.fault(Fault {
+                    iteration: item.iteration,
+                    values,
+                });
+            }
+        }
+        TrainOutput { grads, item: out }
     }
+}
+
+/// The sum of the absolute values of every parameter's gradient (not finite when any
+/// gradient entry is not, or when the sum overflows).
+pub fn gradient_l1<M: Module>(grads: &GradientsParams, module: &M) -> f64 {
+    struct Sum<'a> {
+        grads: &'a GradientsParams,
+        total: Option<Tensor<1>>,
+    }
+    impl ModuleVisitor for Sum<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = self.grads.get::<D>(param.id) {
+                let s = g.abs().sum();
+                self.total = Some(match self.total.take() {
+                    Some(t) => t + s,
+                    None => s,
+                });
+            }
+        }
+    }
+    let mut sum = Sum { grads, total: None };
+    module.visit(&mut sum);
+    sum.total
+        .map(|t| t.into_scalar::<f32>() as f64)
+        .unwrap_or(0.0)
 }
 
 impl InferenceStep for AvatarTraining {
