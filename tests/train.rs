@@ -127,8 +127,11 @@ fn loss_goes_down(backend: BackendKind, iterations: usize, lr_scale: f64, name: 
     c.val_frames = 1;
     let out = out_dir(name);
     let device = backend.autodiff_device();
-    device.seed(c.seed);
-    let initial = c.avatar().unwrap().init(&head().mesh, &device).unwrap();
+    let initial = c
+        .avatar()
+        .unwrap()
+        .init_seeded(c.seed, &head().mesh, &device)
+        .unwrap();
     let inner = backend.device();
     let before = eval_loss(&initial.valid(), &inner);
     let report = train::train(&c, &options(&out, backend)).expect("train");
@@ -211,9 +214,12 @@ impl ModuleVisitor for GradCheck<'_> {
 #[test]
 fn every_parameter_receives_a_gradient_through_decoders_lift_and_splat() {
     let device = Device::flex().autodiff();
-    device.seed(3);
     let c = tiny_config();
-    let avatar = c.avatar().unwrap().init(&head().mesh, &device).unwrap();
+    let avatar = c
+        .avatar()
+        .unwrap()
+        .init_seeded(3, &head().mesh, &device)
+        .unwrap();
     // burn's module display stays readable (the topology's tables are not printed).
     let shown = format!("{avatar}");
     assert!(
@@ -423,9 +429,12 @@ impl ModuleVisitor for MaxStep<'_> {
 #[test]
 fn decoders_and_encoders_train_at_their_learning_rates() {
     let device = Device::flex().autodiff();
-    device.seed(4);
     let c = tiny_config();
-    let avatar = c.avatar().unwrap().init(&head().mesh, &device).unwrap();
+    let avatar = c
+        .avatar()
+        .unwrap()
+        .init_seeded(4, &head().mesh, &device)
+        .unwrap();
     let model = no_vgg(avatar);
     let (terms, _) = model.losses(&batch(1, &device), None);
     let grads = burn::optim::GradientsParams::from_grads(terms.total.backward(), &model);

@@ -72,9 +72,8 @@ fn fps_command(a: FpsArgs) -> anyhow::Result<()> {
         None => {
             let mut net = NetConfig::load(&a.net)?;
             net.condition.expression = head.model.num_expr;
-            device.seed(0);
             AvatarConfig::new(net)
-                .init(&head.mesh, &device)?
+                .init_seeded(0, &head.mesh, &device)?
                 .for_inference()
         }
     };

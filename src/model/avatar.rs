@@ -10,7 +10,7 @@
 //! Gaussian per kept sample, their number fixed for the whole training. It is not a
 //! parameter: it is rebuilt from the mesh and the config, never saved in a checkpoint.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
@@ -25,6 +25,10 @@ use crate::lift::{self, LiftMode, LiftParams, Topology};
 use crate::mesh::UvMesh;
 use crate::splat::{self, Gaussians, SplatParams};
 use crate::texel::FrameKind;
+
+/// Held from seeding the device to the last draw of a seeded initialisation
+/// ([`AvatarConfig::init_seeded`]).
+static SEEDED_INIT: Mutex<()> = Mutex::new(());
 
 /// The paper's ablation switches (method §7). `true` everywhere is the full method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -124,9 +128,25 @@ impl AvatarConfig {
         Topology::new(mesh, self.net.uv_res, self.net.uv_res)
     }
 
-    /// Builds the avatar for `mesh` (seed the device first for reproducible weights).
+    /// Builds the avatar for `mesh` (seed the device first for reproducible weights, or use
+    /// [`Self::init_seeded`]).
     pub fn init(&self, mesh: &UvMesh, device: &Device) -> Result<Avatar> {
         let topology = Arc::new(self.topology(mesh)?);
+        self.init_with_topology(topology, device)
+    }
+
+    /// [`Self::init`] with the device seeded by `seed`: the same weights for the same seed,
+    /// even when other threads draw random tensors at the same time. burn's CPU backends keep
+    /// one random generator per process (burn-flex's `backend::SEED`, a global mutex, locked
+    /// per draw), so a seed followed by several draws can interleave with another thread's
+    /// seed or draws; tests training in parallel threads did (a resumed run then differed from
+    /// a straight one). Every seeded initialisation in this crate goes through one lock.
+    pub fn init_seeded(&self, seed: u64, mesh: &UvMesh, device: &Device) -> Result<Avatar> {
+        let topology = Arc::new(self.topology(mesh)?);
+        let _draws = SEEDED_INIT
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        device.seed(seed);
         self.init_with_topology(topology, device)
     }
 

@@ -374,9 +374,7 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
 
     let backend = options.backend.unwrap_or(config.backend);
     let device = backend.autodiff_device();
-    device.seed(config.seed);
-
-    let avatar = avatar_config.init(&head.mesh, &device)?;
+    let avatar = avatar_config.init_seeded(config.seed, &head.mesh, &device)?;
     // One frame through the checks the step cannot report (it may only panic).
     let probe = train_set.load_item(0)?;
     if probe.vertices.len() != avatar.num_vertices() {
