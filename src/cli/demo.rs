@@ -15,12 +15,17 @@ pub struct DemoArgs {
     /// Training configuration (default: configs/train_cpu.json).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Evaluate every k-th frame of each split.
+    /// Score ceil(n / k) of each split's n images, spread evenly over its timesteps and
+    /// cameras.
     #[arg(long, default_value_t = 4)]
     pub eval_stride: usize,
     /// Do not install the VGG16 / AlexNet weights when missing (VGG loss and LPIPS need them).
     #[arg(long)]
     pub no_weights_install: bool,
+    /// When OUT/data holds a benchmark made with other settings (an earlier version's
+    /// defaults), generate it again and train anew (deletes its files and OUT/run).
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// Runs `demo`.
@@ -37,6 +42,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         train_config: a.config.unwrap_or_else(default_train_config),
         eval_stride: a.eval_stride,
         install_weights: !a.no_weights_install,
+        force: a.force,
     };
     let report = run_demo(&opts, &mut |l| eprintln!("demo: {l}"))?;
     println!("{}", std::fs::read_to_string(report.join("README.md"))?);

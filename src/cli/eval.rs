@@ -1,25 +1,35 @@
 //! `texavatars eval`: score a trained avatar on the evaluation splits.
 
-use std::path::PathBuf;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 
 use clap::Args;
+use serde::Serialize;
 
 use crate::data::{PathPolicy, Split};
 use crate::device::BackendKind;
+use crate::error::Error;
 use crate::eval::run::{EvalOptions, evaluate};
+use crate::eval::{Means, combine_subjects, paper_table};
 
 /// Arguments of `eval`.
 #[derive(Debug, Args)]
 pub struct EvalArgs {
     /// The export's split folder (e.g. `out/synth/union`).
-    #[arg(long)]
-    pub data: PathBuf,
+    #[arg(long, required_unless_present = "combine")]
+    pub data: Option<PathBuf>,
     /// The training run's folder (`texavatars train --out`).
-    #[arg(long)]
-    pub run: PathBuf,
+    #[arg(long, required_unless_present = "combine")]
+    pub run: Option<PathBuf>,
     /// Output folder (metrics.json, table.md, images/).
     #[arg(long)]
     pub out: PathBuf,
+    /// Combine earlier evaluations of several subjects instead of evaluating: each DIR is
+    /// an `eval --out` folder (its metrics.json); writes OUT/table.md and OUT/metrics.json
+    /// with, per split, the mean over the subjects of their means and the standard
+    /// deviation over the subjects. Repeatable (one per subject).
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["data", "run", "extra", "head"])]
+    pub combine: Vec<PathBuf>,
     /// Splits of `--data`, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "val,test,free")]
     pub splits: Vec<Split>,
@@ -34,7 +44,8 @@ pub struct EvalArgs {
     /// Skip LPIPS (no pretrained weights needed).
     #[arg(long)]
     pub no_lpips: bool,
-    /// Evaluate every k-th frame of each split.
+    /// Score ceil(n / k) of each split's n images, spread evenly over its timesteps and
+    /// cameras (1: all).
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
     /// Ground truth | render | error panels written per split.
@@ -51,9 +62,17 @@ pub struct EvalArgs {
 
 /// Runs `eval`.
 pub fn run(a: EvalArgs) -> anyhow::Result<()> {
+    if !a.combine.is_empty() {
+        return combine(&a.combine, &a.out);
+    }
+    let (Some(data), Some(run)) = (a.data, a.run) else {
+        return Err(
+            Error::invalid("eval", "--data/--run", "required (or --combine DIR ...)").into(),
+        );
+    };
     let opts = EvalOptions {
-        data: a.data,
-        run: a.run,
+        data,
+        run,
         out: a.out.clone(),
         splits: a.splits,
         extra: a.extra,
@@ -74,6 +93,55 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         "wrote {}/metrics.json, table.md, images/ in {:.1} s",
         a.out.display(),
         report.seconds
+    );
+    Ok(())
+}
+
+/// The subjects' means combined (`eval --combine`).
+#[derive(Serialize)]
+struct Combined {
+    subjects: Vec<PathBuf>,
+    means: BTreeMap<String, Means>,
+    table: String,
+}
+
+/// `eval --combine DIR ... --out OUT`: reads each DIR/metrics.json's means, combines them
+/// over the subjects and writes OUT/metrics.json and OUT/table.md.
+fn combine(dirs: &[PathBuf], out: &Path) -> anyhow::Result<()> {
+    let mut subjects = Vec::with_capacity(dirs.len());
+    for d in dirs {
+        let path = d.join("metrics.json");
+        let what = path.display().to_string();
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let json: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| Error::invalid(&what, format!("line {}", e.line()), e.to_string()))?;
+        let means: BTreeMap<String, Means> =
+            serde_json::from_value(json.get("means").cloned().unwrap_or_default())
+                .map_err(|e| Error::invalid(&what, "means", e.to_string()))?;
+        if means.is_empty() {
+            return Err(Error::invalid(&what, "means", "no split was evaluated").into());
+        }
+        subjects.push(means);
+    }
+    let means = combine_subjects(&subjects);
+    let table = paper_table(&means);
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let c = Combined {
+        subjects: dirs.to_vec(),
+        means,
+        table,
+    };
+    let json = serde_json::to_string_pretty(&c)
+        .map_err(|e| Error::invalid("evaluation", "json", e.to_string()))?;
+    let path = out.join("metrics.json");
+    std::fs::write(&path, json).map_err(|e| Error::io(&path, e))?;
+    let path = out.join("table.md");
+    std::fs::write(&path, &c.table).map_err(|e| Error::io(&path, e))?;
+    println!("{}", c.table);
+    println!(
+        "wrote {}/metrics.json, table.md ({} subjects)",
+        out.display(),
+        dirs.len()
     );
     Ok(())
 }

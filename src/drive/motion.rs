@@ -165,12 +165,7 @@ impl Motion {
             } else {
                 path.to_path_buf()
             };
-            let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-                .map_err(|e| Error::io(&dir, e))?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|e| e == "npz"))
-                .collect();
-            files.sort();
+            let files = crate::io::files_with_extension(&dir, "npz")?;
             if files.is_empty() {
                 return Err(Error::invalid(
                     dir.display().to_string(),

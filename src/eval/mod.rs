@@ -1,11 +1,13 @@
 //! Evaluation with the paper's protocol (method.md §7), independent of how the renders were
-//! made: per-image scores ([`Scorer`]), their means per split ([`Tally`]), the table in the
-//! paper's layout ([`paper_table`]), side-by-side panels ([`panel`]) and training curves
-//! ([`plot`]).
+//! made: which images of a split to score ([`sample`]), per-image scores ([`Scorer`]), their
+//! means and standard deviations per split ([`Tally`]) and over subjects
+//! ([`combine_subjects`]), the table in the paper's layout ([`paper_table`]), side-by-side
+//! panels ([`panel`]) and training curves ([`plot`]).
 
 pub mod plot;
 pub mod run;
+pub mod sample;
 pub mod score;
 
 pub use plot::{Series, line_plot};
-pub use score::{Means, Scorer, Scores, Tally, panel, paper_table};
+pub use score::{Means, Scorer, Scores, Tally, combine_subjects, panel, paper_table};

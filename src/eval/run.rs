@@ -5,10 +5,13 @@
 //! other VHAP export as an extra split (`--split NAME=PATH/transforms.json`: VHAP writes a
 //! FREE sequence as an export folder of its own). Every split is posed with the avatar's
 //! subject (`RUN/canonical_flame_param.npz`, written by `train`; for runs without it, each
-//! export's own, see [`crate::data::identity`]). Writes
-//! `metrics.json` (means per split and every image's scores), `table.md` (the paper's
-//! layout) and `images/<split>/TTTTT_CC.png` panels (ground truth | render | error, under a
-//! header row naming them, with the render's PSNR).
+//! export's own, see [`crate::data::identity`]). With `stride` k > 1 a split is scored on
+//! `ceil(n / k)` of its n images, spread evenly over its timesteps and cameras
+//! ([`crate::eval::sample::spread`]). Writes
+//! `metrics.json` (means and standard deviations per split and every image's scores),
+//! `table.md` (the paper's layout, mean ± standard deviation over the images) and
+//! `images/<split>/TTTTT_CC.png` panels (ground truth | render | error, under a header row
+//! naming them, with the render's PSNR).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -45,7 +48,8 @@ pub struct EvalOptions {
     pub head: Option<PathBuf>,
     /// Score LPIPS too (needs `texavatars weights install`).
     pub lpips: bool,
-    /// Evaluate every `stride`-th frame of each split (1 = all).
+    /// Score `ceil(n / stride)` of each split's n images, spread evenly over its timesteps
+    /// and cameras (1 = all).
     pub stride: usize,
     /// Panels written per split (spread over the split).
     pub panels: usize,
@@ -185,7 +189,12 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
     for ((split, _), ds) in splits.iter().zip(datasets) {
         let t0 = Instant::now();
-        let indices: Vec<usize> = (0..ds.len()).step_by(opts.stride.max(1)).collect();
+        let frames: Vec<(usize, usize)> = ds
+            .frames()
+            .iter()
+            .map(|f| (f.timestep, f.camera_index))
+            .collect();
+        let indices = crate::eval::sample::spread(&frames, ds.len().div_ceil(opts.stride.max(1)));
         let panel_at = spread(indices.len(), opts.panels);
         let dir = opts.out.join("images").join(split);
         if !panel_at.is_empty() {
@@ -216,13 +225,17 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
         let m = tally.means();
         if let Some(m) = m.get(split.as_str()) {
             progress(&format!(
-                "{split}: {} images in {:.1} s: PSNR {:.2} dB, SSIM {:.4}{}",
+                "{split}: {} images in {:.1} s: PSNR {:.2} ± {:.2} dB, SSIM {:.4} ± {:.4}{}",
                 m.images,
                 t0.elapsed().as_secs_f64(),
                 m.psnr,
+                m.psnr_std,
                 m.ssim,
-                m.lpips_alex
-                    .map_or(String::new(), |l| format!(", LPIPS {l:.4}"))
+                m.ssim_std,
+                m.lpips_alex.map_or(String::new(), |l| format!(
+                    ", LPIPS {l:.4} ± {:.4}",
+                    m.lpips_alex_std.unwrap_or(0.0)
+                ))
             ));
         }
     }

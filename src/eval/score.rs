@@ -1,4 +1,4 @@
-//! Per-image scores and their means per split.
+//! Per-image scores and their means and standard deviations per split, and over subjects.
 //!
 //! Every image is scored on the full frame with a white background, clamped to [0, 1]:
 //! PSNR, SSIM (11x11 Gaussian window, sigma 1.5), LPIPS-alex v0.1 with inputs scaled to
@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 
 use burn::tensor::{Device, Tensor, TensorData};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::metrics::{self, Lpips, Net};
@@ -100,8 +100,10 @@ impl Scorer {
     }
 }
 
-/// Means of scores over a split.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+/// Means and standard deviations of scores over a split: over its images
+/// ([`Tally::means`]) or, for several subjects, over the subjects' means
+/// ([`combine_subjects`]; then `subjects` > 0).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Means {
     pub images: usize,
     pub psnr: f64,
@@ -109,84 +111,170 @@ pub struct Means {
     pub lpips_alex: Option<f64>,
     pub lpips_vgg: Option<f64>,
     pub lpips_alex_unscaled_inputs: Option<f64>,
+    /// Standard deviations (sample, n - 1; 0 for one value) of the same scores.
+    #[serde(default)]
+    pub psnr_std: f64,
+    #[serde(default)]
+    pub ssim_std: f64,
+    #[serde(default)]
+    pub lpips_alex_std: Option<f64>,
+    #[serde(default)]
+    pub lpips_vgg_std: Option<f64>,
+    #[serde(default)]
+    pub lpips_alex_unscaled_inputs_std: Option<f64>,
+    /// Subjects the means and deviations are taken over (0: over the images of one).
+    #[serde(default)]
+    pub subjects: usize,
 }
 
-/// Running sums per split. PSNR is averaged per image in dB (as GaussianAvatars does); an
-/// identical pair (infinite PSNR) is counted at [`PSNR_CAP`].
+/// Mean and sample standard deviation (n - 1; 0 for fewer than two values).
+pub fn mean_std(v: &[f64]) -> (f64, f64) {
+    if v.is_empty() {
+        return (0.0, 0.0);
+    }
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    if v.len() < 2 {
+        return (m, 0.0);
+    }
+    let var = v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0);
+    (m, var.sqrt())
+}
+
+/// Per split, the scores of every image. PSNR is averaged per image in dB (as
+/// GaussianAvatars does); an identical pair (infinite PSNR) is counted at [`PSNR_CAP`].
 #[derive(Clone, Debug, Default)]
 pub struct Tally {
-    sums: BTreeMap<String, Sums>,
+    scores: BTreeMap<String, Vec<Scores>>,
 }
-
-/// Per split: images, PSNR sum, SSIM sum, LPIPS sums (alex, vgg, alex unscaled) and counts.
-type Sums = (usize, f64, f64, [f64; 3], [usize; 3]);
 
 /// PSNR used for a perfect match when averaging (100 dB).
 pub const PSNR_CAP: f64 = 100.0;
+
+/// Mean and deviation of the values present, `None` when there are none.
+fn mean_std_some(v: &[Option<f64>]) -> (Option<f64>, Option<f64>) {
+    let some: Vec<f64> = v.iter().flatten().copied().collect();
+    if some.is_empty() {
+        return (None, None);
+    }
+    let (m, s) = mean_std(&some);
+    (Some(m), Some(s))
+}
+
+/// Means and deviations over a list of per-item values: `(psnr, ssim, [lpips x3])`.
+fn summarise(items: &[(f64, f64, [Option<f64>; 3])], images: usize, subjects: usize) -> Means {
+    let (psnr, psnr_std) = mean_std(&items.iter().map(|i| i.0).collect::<Vec<_>>());
+    let (ssim, ssim_std) = mean_std(&items.iter().map(|i| i.1).collect::<Vec<_>>());
+    let l = |k: usize| mean_std_some(&items.iter().map(|i| i.2[k]).collect::<Vec<_>>());
+    let (a, v, u) = (l(0), l(1), l(2));
+    Means {
+        images,
+        psnr,
+        ssim,
+        lpips_alex: a.0,
+        lpips_vgg: v.0,
+        lpips_alex_unscaled_inputs: u.0,
+        psnr_std,
+        ssim_std,
+        lpips_alex_std: a.1,
+        lpips_vgg_std: v.1,
+        lpips_alex_unscaled_inputs_std: u.1,
+        subjects,
+    }
+}
 
 impl Tally {
     /// Adds one image's scores to the split named `split` (a [`crate::data::Split`]'s name or an extra
     /// split's).
     pub fn add(&mut self, split: &str, s: &Scores) {
-        let e = self.sums.entry(split.to_string()).or_default();
-        e.0 += 1;
-        e.1 += if s.psnr.is_finite() { s.psnr } else { PSNR_CAP };
-        e.2 += s.ssim;
-        for (k, v) in [s.lpips_alex, s.lpips_vgg, s.lpips_alex_unscaled_inputs]
-            .into_iter()
-            .enumerate()
-        {
-            if let Some(v) = v {
-                e.3[k] += v;
-                e.4[k] += 1;
-            }
-        }
+        self.scores.entry(split.to_string()).or_default().push(*s);
     }
 
-    /// The means per split name.
+    /// The means and standard deviations over the images, per split name.
     pub fn means(&self) -> BTreeMap<String, Means> {
-        self.sums
+        self.scores
             .iter()
-            .map(|(k, (n, p, s, l, c))| {
-                let n = (*n).max(1) as f64;
-                let m = |i: usize| (c[i] > 0).then(|| l[i] / c[i] as f64);
-                (
-                    k.clone(),
-                    Means {
-                        images: n as usize,
-                        psnr: p / n,
-                        ssim: s / n,
-                        lpips_alex: m(0),
-                        lpips_vgg: m(1),
-                        lpips_alex_unscaled_inputs: m(2),
-                    },
-                )
+            .map(|(k, v)| {
+                let items: Vec<_> = v
+                    .iter()
+                    .map(|s| {
+                        (
+                            if s.psnr.is_finite() { s.psnr } else { PSNR_CAP },
+                            s.ssim,
+                            [s.lpips_alex, s.lpips_vgg, s.lpips_alex_unscaled_inputs],
+                        )
+                    })
+                    .collect();
+                (k.clone(), summarise(&items, v.len(), 0))
             })
             .collect()
     }
 }
 
+/// Several subjects' means per split (each from [`Tally::means`]) combined as the paper
+/// reports a multi-subject benchmark: per split, the mean over the subjects of each
+/// subject's mean, and the standard deviation over the subjects. A split counts the
+/// subjects that have it; `images` is their total.
+pub fn combine_subjects(subjects: &[BTreeMap<String, Means>]) -> BTreeMap<String, Means> {
+    let mut splits: BTreeMap<String, Vec<Means>> = BTreeMap::new();
+    for s in subjects {
+        for (k, m) in s {
+            splits.entry(k.clone()).or_default().push(*m);
+        }
+    }
+    splits
+        .into_iter()
+        .map(|(k, ms)| {
+            let items: Vec<_> = ms
+                .iter()
+                .map(|m| {
+                    (
+                        m.psnr,
+                        m.ssim,
+                        [m.lpips_alex, m.lpips_vgg, m.lpips_alex_unscaled_inputs],
+                    )
+                })
+                .collect();
+            let images = ms.iter().map(|m| m.images).sum();
+            (k, summarise(&items, images, ms.len()))
+        })
+        .collect()
+}
+
+/// `mean ± std` with `digits` decimals.
+fn pm(mean: f64, std: f64, digits: usize) -> String {
+    format!("{mean:.digits$} ± {std:.digits$}")
+}
+
 /// The paper's table (method.md §7): rows novel expression (held-out = `test`), novel
-/// expression (FREE = `free`), novel view (`val`); columns LPIPS (alex), SSIM, PSNR. The
-/// paper's mean over NeRSemble subjects is given beside each row for orientation only: the
-/// data differ.
+/// expression (FREE = `free`), novel view (`val`); columns LPIPS (alex), SSIM, PSNR, each
+/// as mean ± standard deviation (over the images, or over the subjects when the means were
+/// [`combine_subjects`]d, as the caption line under the table says). The paper's mean over
+/// NeRSemble subjects is given beside each row for orientation only: the data differ.
 pub fn paper_table(means: &BTreeMap<String, Means>) -> String {
     let rows = [
         ("novel expression (held-out)", "test", (0.048, 0.894, 25.61)),
         ("novel expression (FREE)", "free", (0.077, 0.861, 22.84)),
         ("novel view", "val", (0.030, 0.947, 35.15)),
     ];
+    let lpips = |m: &Means| match (m.lpips_alex, m.lpips_alex_std) {
+        (Some(v), s) => pm(v, s.unwrap_or(0.0), 3),
+        (None, _) => "n/a".to_string(),
+    };
     let mut s = String::from(
         "| split | LPIPS | SSIM | PSNR | images | paper (NeRSemble) LPIPS / SSIM / PSNR |\n|---|---|---|---|---|---|\n",
     );
     for (label, key, paper) in rows {
         let Some(m) = means.get(key) else { continue };
-        let lp = m
-            .lpips_alex
-            .map_or("n/a".to_string(), |v| format!("{v:.3}"));
         s.push_str(&format!(
-            "| {label} | {lp} | {:.3} | {:.2} | {} | {:.3} / {:.3} / {:.2} |\n",
-            m.ssim, m.psnr, m.images, paper.0, paper.1, paper.2
+            "| {label} | {} | {} | {} | {} | {:.3} / {:.3} / {:.2} |\n",
+            lpips(m),
+            pm(m.ssim, m.ssim_std, 3),
+            pm(m.psnr, m.psnr_std, 2),
+            m.images,
+            paper.0,
+            paper.1,
+            paper.2
         ));
     }
     // Extra splits (`eval --split NAME=PATH`) have no paper figure.
@@ -194,13 +282,21 @@ pub fn paper_table(means: &BTreeMap<String, Means>) -> String {
         if rows.iter().any(|r| r.1 == key) {
             continue;
         }
-        let lp = m
-            .lpips_alex
-            .map_or("n/a".to_string(), |v| format!("{v:.3}"));
         s.push_str(&format!(
-            "| {key} | {lp} | {:.3} | {:.2} | {} | |\n",
-            m.ssim, m.psnr, m.images
+            "| {key} | {} | {} | {} | {} | |\n",
+            lpips(m),
+            pm(m.ssim, m.ssim_std, 3),
+            pm(m.psnr, m.psnr_std, 2),
+            m.images
         ));
+    }
+    let subjects = means.values().map(|m| m.subjects).max().unwrap_or(0);
+    if subjects > 0 {
+        s.push_str(&format!(
+            "\nMean ± standard deviation over {subjects} subjects (each subject's mean over its images); images: the subjects' total.\n"
+        ));
+    } else if !means.is_empty() {
+        s.push_str("\nMean ± standard deviation over the images.\n");
     }
     s
 }
@@ -274,13 +370,39 @@ mod tests {
         assert!((m["test"].ssim - 0.85).abs() < 1e-12);
         assert_eq!(m["val"].psnr, PSNR_CAP);
         assert_eq!(m["test"].lpips_vgg, None);
+        // Sample deviations over the images: PSNR 20 and 30 → 7.07; SSIM 0.8, 0.9 → 0.0707.
+        assert!((m["test"].psnr_std - 50f64.sqrt()).abs() < 1e-9);
+        assert!((m["test"].ssim_std - 0.005f64.sqrt()).abs() < 1e-9);
+        assert_eq!(m["test"].lpips_alex_std, Some(0.0));
+        assert_eq!(m["val"].psnr_std, 0.0, "one image");
         let table = paper_table(&m);
         assert!(
-            table.contains("| novel expression (held-out) | 0.100 | 0.850 | 25.00 | 2 |"),
+            table.contains(
+                "| novel expression (held-out) | 0.100 ± 0.000 | 0.850 ± 0.071 | 25.00 ± 7.07 | 2 |"
+            ),
             "{table}"
         );
         assert!(table.contains("| novel view |"));
+        assert!(table.contains("over the images"));
         assert!(!table.contains("FREE"), "no free rows without free images");
+        // Two subjects: mean and deviation over the subjects' means.
+        let mut t2 = Tally::default();
+        t2.add("test", &s(40.0, 0.95));
+        let both = combine_subjects(&[m.clone(), t2.means()]);
+        let b = both["test"];
+        assert_eq!((b.subjects, b.images), (2, 3));
+        assert!((b.psnr - 32.5).abs() < 1e-12);
+        assert!((b.psnr_std - (2.0 * 7.5f64.powi(2)).sqrt()).abs() < 1e-9);
+        assert_eq!(both["val"].subjects, 1);
+        let table = paper_table(&both);
+        assert!(table.contains("32.50 ± 10.61"), "{table}");
+        assert!(table.contains("over 2 subjects"), "{table}");
+        // metrics.json written before the deviations existed still reads.
+        let old: Means = serde_json::from_str(
+            r#"{"images": 2, "psnr": 25.0, "ssim": 0.85, "lpips_alex": null, "lpips_vgg": null, "lpips_alex_unscaled_inputs": null}"#,
+        )
+        .expect("old means");
+        assert_eq!((old.psnr, old.psnr_std, old.subjects), (25.0, 0.0, 0));
     }
 
     #[test]

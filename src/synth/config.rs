@@ -1,4 +1,6 @@
-//! Settings of the synthetic benchmark (`configs/synth*.json`); every field has a default.
+//! Settings of the synthetic benchmark (`configs/synth*.json`); every field has a default,
+//! so configs and recorded exports written before a field existed still read (they take
+//! the field's default).
 
 use std::path::Path;
 
@@ -6,6 +8,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::limits;
+use crate::synth::tracking::TrackingNoise;
+
+/// The largest subject index `--subject` takes.
+pub const MAX_SUBJECT: usize = 1_000_000;
 
 /// What `texavatars synth` generates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -33,7 +39,8 @@ pub struct SynthConfig {
     pub free_frames: usize,
     /// Resolution of the baked albedo and wrinkle maps.
     pub texture_res: usize,
-    /// Standard deviation of the noise added to the eta side signal.
+    /// Standard deviation of the noise added to the eta side signal (whose clean values
+    /// lie in [-1, 1]).
     pub eta_noise: f32,
     /// How much a fully active wrinkle darkens the albedo.
     pub wrinkle_strength: f32,
@@ -43,6 +50,17 @@ pub struct SynthConfig {
     pub free_rotation: f32,
     /// Seed of every random choice.
     pub seed: u64,
+    /// The subject rendered (`texavatars synth --subject K`): 0 is the head's mean shape
+    /// with the original appearance; others differ in shape and appearance
+    /// ([`crate::synth::subject`]).
+    pub subject: usize,
+    /// Strength of the hidden muscle tension that changes wrinkles independently of the
+    /// expression ([`crate::synth::tension`]); 0 makes the activations a function of the
+    /// expression coefficients alone.
+    pub tension: f32,
+    /// Noise of the tracked parameters written to `flame_param/`
+    /// ([`crate::synth::tracking`]); the truth goes to `truth/`.
+    pub tracking: TrackingNoise,
 }
 
 impl Default for SynthConfig {
@@ -56,7 +74,7 @@ impl Default for SynthConfig {
             distance: 1.0,
             arc_degrees: 120.0,
             fov_y_degrees: 20.0,
-            frames_per_sequence: 8,
+            frames_per_sequence: 12,
             free_frames: 24,
             texture_res: 512,
             eta_noise: 0.05,
@@ -64,6 +82,9 @@ impl Default for SynthConfig {
             train_rotation: 0.2,
             free_rotation: 0.5,
             seed: 7,
+            subject: 0,
+            tension: 1.0,
+            tracking: TrackingNoise::default(),
         }
     }
 }
@@ -125,7 +146,13 @@ impl SynthConfig {
         if !self.eta_noise.is_finite() || self.eta_noise < 0.0 {
             return bad("eta_noise", "must be >= 0");
         }
-        Ok(())
+        if !self.tension.is_finite() || !(0.0..=4.0).contains(&self.tension) {
+            return bad("tension", "must be from 0 to 4");
+        }
+        if self.subject > MAX_SUBJECT {
+            return bad("subject", "must be at most 1000000");
+        }
+        self.tracking.validate(what)
     }
 
     /// Timesteps of the benchmark: the ten training sequences and the test sequence at

@@ -8,24 +8,35 @@
 //! OUT/<sequence>/images/TTTTT_CC.png       RGB, white background
 //! OUT/<sequence>/fg_masks/TTTTT_CC.png     8-bit coverage
 //! OUT/<sequence>/flame_param/TTTTT.npz     translation, rotation, neck_pose, jaw_pose,
-//!                                          eyes_pose (1, 6), expr (1, E), shape (S,)
+//!                                          eyes_pose (1, 6), expr (1, E), shape (S,):
+//!                                          what a tracker reports (truth plus noise)
 //! OUT/<sequence>/eta/TTTTT.npy             float32 [128] side signal
+//! OUT/<sequence>/truth/TTTTT.npz           the true parameters (same keys) and
+//!                                          activations (7,), tension_gain (7,),
+//!                                          tension_rest (7,); for analysis, never read
+//!                                          by training
 //! OUT/<sequence>/transforms.json           every frame of the sequence, local timesteps
 //! OUT/union/transforms_{train,val,test,free}.json   the splits, `../<sequence>/...` paths,
 //!                                          global timesteps
 //! OUT/union/canonical_flame_param.npz      the neutral parameters
 //! OUT/head/head.{npz,obj,json}             the head it was rendered from
 //! OUT/synth/{config.json, summary.json, albedo.png, wrinkles_*.png}
+//! OUT/synth/analysis.json                  `texavatars synth --analyse OUT` ([`analysis`])
 //! ```
 //!
 //! Splits (NeRSemble protocol): train = the ten training sequences on every camera but
 //! `val_camera`; val = the same frames from `val_camera` (novel view); test = the held-out
 //! sequence on every camera (novel expression); free = the FREE sequence on every camera.
 //!
-//! Per frame the conditioning is the expression coefficients (the tracked signal, here
-//! exact), the 15 pose values, and eta: a fixed random projection of the frame's true
-//! wrinkle activations plus Gaussian noise (a stand-in for an image-based expression
-//! encoder). Rendering a timestep is skipped when all its files exist, so an interrupted
+//! The capture is of one subject ([`subject`], `SynthConfig::subject`; one export folder
+//! per subject). Images are rendered from the true parameters; per frame the conditioning
+//! is what a tracker would report ([`tracking`]: the truth plus noise on the expression,
+//! the joint rotations and the translation), the 15 pose values, and eta: an image-like
+//! encoding of the frame's true wrinkle activations plus noise (a stand-in for an
+//! image-based expression encoder, [`appearance`]). The activations depend on the
+//! expression *and* on a hidden per-frame muscle tension ([`tension`]) that the
+//! coefficients do not determine; [`analysis`] measures how much of them each signal
+//! explains. Rendering a timestep is skipped when all its files exist, so an interrupted
 //! run resumes where it stopped; files are written through temporary names (`X.partial`),
 //! which a run removes when it fails and, left by a killed run, when it starts.
 //!
@@ -36,11 +47,15 @@
 //! `force`: then the files a run writes (the layout above, matched by name; nothing else)
 //! are deleted first and everything is rendered again.
 
+pub mod analysis;
 pub mod appearance;
 pub mod cameras;
 pub mod config;
 pub mod render;
 pub mod sequences;
+pub mod subject;
+pub mod tension;
+pub mod tracking;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -55,10 +70,13 @@ use crate::splat::demo::Pcg;
 
 pub use config::SynthConfig;
 pub use sequences::{Role, Sequence};
+pub use subject::Subject;
 
 /// What a run produced.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct Summary {
+    /// The subject rendered.
+    pub subject: usize,
     pub sequences: usize,
     pub timesteps: usize,
     pub cameras: usize,
@@ -258,8 +276,10 @@ fn clear_owned(out: &Path, pick: &dyn Fn(&str) -> bool) -> Result<usize> {
     n += clear_matching(&out.join("synth"), &|f| {
         let b = base(f);
         pick(f)
-            && (matches!(b.as_str(), "config.json" | "summary.json" | "albedo.png")
-                || (b.starts_with("wrinkles_") && b.ends_with(".png")))
+            && (matches!(
+                b.as_str(),
+                "config.json" | "summary.json" | "analysis.json" | "albedo.png"
+            ) || (b.starts_with("wrinkles_") && b.ends_with(".png")))
     })?;
     n += clear_matching(&out.join("head"), &|f| {
         pick(f) && matches!(base(f).as_str(), "head.npz" | "head.obj" | "head.json")
@@ -291,8 +311,127 @@ fn clear_owned(out: &Path, pick: &dyn Fn(&str) -> bool) -> Result<usize> {
         n += clear_matching(&dir.join("eta"), &|f| {
             pick(f) && frame_file(f, ".npy", false)
         })?;
+        n += clear_matching(&dir.join(TRUTH_DIR), &|f| {
+            pick(f) && frame_file(f, ".npz", false)
+        })?;
     }
     Ok(n)
+}
+
+/// The folder of a sequence that holds the true parameters (`truth/TTTTT.npz`).
+pub const TRUTH_DIR: &str = "truth";
+
+/// Where the truth of a timestep lives, given its `flame_param` path
+/// (`<sequence>/flame_param/TTTTT.npz` → `<sequence>/truth/TTTTT.npz`).
+pub fn truth_path(flame_param: &Path) -> PathBuf {
+    let dir = flame_param
+        .parent()
+        .and_then(Path::parent)
+        .unwrap_or(Path::new("."));
+    dir.join(TRUTH_DIR)
+        .join(flame_param.file_name().unwrap_or_default())
+}
+
+/// Writes a frame's truth: the true parameters under VHAP's keys
+/// ([`HeadPose::save_npz`]'s), its wrinkle activations and its hidden tension.
+fn write_truth(
+    path: &Path,
+    pose: &HeadPose,
+    act: &[f32; appearance::WRINKLES],
+    tension: &tension::Tension,
+) -> Result<()> {
+    pose.check_finite(&path.display().to_string())?;
+    let w = appearance::WRINKLES;
+    let mut out = io::npz::NpzOut::default();
+    out.floats("translation", &[1, 3], pose.translation.to_vec())
+        .floats("rotation", &[1, 3], pose.rotation.to_vec())
+        .floats("neck_pose", &[1, 3], pose.neck.to_vec())
+        .floats("jaw_pose", &[1, 3], pose.jaw.to_vec())
+        .floats("eyes_pose", &[1, 6], pose.eyes.to_vec())
+        .floats("expr", &[1, pose.expr.len()], pose.expr.clone())
+        .floats("shape", &[pose.shape.len()], pose.shape.clone())
+        .floats("activations", &[w], act.to_vec())
+        .floats("tension_gain", &[w], tension.gain.to_vec())
+        .floats("tension_rest", &[w], tension.rest.to_vec());
+    out.write(path)
+}
+
+/// One captured frame: the truth, what the tracker reports, the hidden tension, the true
+/// wrinkle activations and eta.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    /// The true parameters (the images are rendered from them).
+    pub truth: HeadPose,
+    /// What a tracker reports: the truth plus noise (`flame_param/`).
+    pub reported: HeadPose,
+    /// The hidden muscle tension.
+    pub tension: tension::Tension,
+    /// The true wrinkle activations.
+    pub activations: [f32; appearance::WRINKLES],
+    /// The eta side signal.
+    pub eta: Vec<f32>,
+}
+
+/// Everything a run renders and writes, before any image: the subject, its appearance and
+/// per sequence its frames. Deterministic in the config.
+pub struct Capture {
+    pub subject: Subject,
+    pub appearance: appearance::Appearance,
+    pub sequences: Vec<(Sequence, Vec<Frame>)>,
+}
+
+/// The capture of `config`'s subject with `head` (see the module docs): subject, baked
+/// appearance, sequences with their true and reported parameters, tension, activations
+/// and eta.
+pub fn capture(config: &SynthConfig, head: &HeadAsset) -> Result<Capture> {
+    let model = &head.model;
+    let subject = Subject::new(config.subject, model.num_shape, config.seed);
+    let appearance = appearance::bake_subject(head, config.texture_res, config.seed, &subject)?;
+    let mut seqs = sequences::sequences(config, model, &head.meta);
+    for pose in seqs.iter_mut().flat_map(|s| s.frames.iter_mut()) {
+        pose.shape.clone_from(&subject.shape);
+    }
+    let expr_std = tracking::expr_noise_std(model, config.tracking.expr_mm);
+    // Every subject performs the same sequences, each with its own tension, its own
+    // tracking errors and its own eta noise (subject 0 keeps the config's seed).
+    let seed = config.seed ^ (config.subject as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let mut rng = Pcg::new(seed ^ 0xe7a_0b5e);
+    let sequences = seqs
+        .into_iter()
+        .enumerate()
+        .map(|(si, seq)| {
+            let tensions = tension::sequence_tension(seq.frames.len(), si, config.tension, seed);
+            let reported = tracking::track(
+                &seq.frames,
+                &config.tracking,
+                expr_std,
+                &mut Pcg::new(seed ^ 0x7_2ac6 ^ (si as u64).wrapping_mul(0x51_7cc1)),
+            );
+            let frames = seq
+                .frames
+                .iter()
+                .zip(reported)
+                .zip(tensions)
+                .map(|((truth, reported), tension)| {
+                    let act = appearance.activations_with(truth, &tension);
+                    let eta = appearance.eta(&act, &truth.expr, config.eta_noise, &mut rng);
+                    Frame {
+                        truth: truth.clone(),
+                        reported,
+                        tension,
+                        activations: act,
+                        eta,
+                    }
+                })
+                .collect();
+            (seq, frames)
+        })
+        .collect();
+    Ok(Capture {
+        subject,
+        appearance,
+        sequences,
+    })
 }
 
 fn generate_into(
@@ -317,12 +456,15 @@ fn generate_into(
     std::fs::write(&cfg_tmp, cfg_text).map_err(io_err(&cfg_tmp))?;
     std::fs::rename(&cfg_tmp, &cfg_path).map_err(io_err(&cfg_path))?;
 
-    let appearance = appearance::bake(head, config.texture_res, config.seed)?;
+    let Capture {
+        subject,
+        appearance,
+        sequences: seqs,
+    } = capture(config, head)?;
     write_maps(&appearance, &synth_dir)?;
-    let seqs = sequences::sequences(config, model, &head.meta);
-    // Look at the middle of the head's bounding box.
-    let (lo, hi) = model
-        .v_template
+    // Look at the middle of the subject's bounding box.
+    let rest = lbs(model, &subject.neutral(model))?;
+    let (lo, hi) = rest
         .iter()
         .fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), p| {
             (
@@ -333,25 +475,23 @@ fn generate_into(
     let target = glam::Vec3::from(std::array::from_fn::<f32, 3, _>(|i| 0.5 * (lo[i] + hi[i])));
     let rig = cameras::rig(config, target);
 
-    let mut rng = Pcg::new(config.seed ^ 0xe7a_0b5e);
     let mut global = 0usize;
     let mut splits: [Vec<FrameRecord>; 4] = Default::default();
     let (mut rendered, mut skipped) = (0usize, 0usize);
-    for seq in &seqs {
+    for (seq, frames) in &seqs {
         let t0 = Instant::now();
         let dir = out.join(&seq.name);
-        for sub in ["images", "fg_masks", "flame_param", "eta"] {
+        for sub in ["images", "fg_masks", "flame_param", "eta", TRUTH_DIR] {
             let d = dir.join(sub);
             std::fs::create_dir_all(&d).map_err(io_err(&d))?;
         }
         let mut records = Vec::new();
         let mut todo = Vec::new();
-        for (t, pose) in seq.frames.iter().enumerate() {
-            let act = appearance.activations(pose);
-            let eta = appearance.eta(&act, config.eta_noise, &mut rng); // drawn even when skipped: resumable runs stay identical
+        for (t, frame) in frames.iter().enumerate() {
             let param = dir.join(format!("flame_param/{t:05}.npz"));
             let complete = param.exists()
                 && eta_path(&param).exists()
+                && truth_path(&param).exists()
                 && (0..rig.len()).all(|c| {
                     let (i, m) = frame_names(t, c);
                     dir.join(i).exists() && dir.join(m).exists()
@@ -359,7 +499,7 @@ fn generate_into(
             if complete {
                 skipped += 1;
             } else {
-                todo.push((t, pose, act, eta, param));
+                todo.push((t, frame, param));
             }
             for (c, cam) in rig.iter().enumerate() {
                 let (i, m) = frame_names(t, c);
@@ -388,8 +528,8 @@ fn generate_into(
             }
         }
         rendered += todo.len();
-        for (t, pose, act, eta, param) in todo {
-            let verts = lbs(model, pose)?;
+        for (t, frame, param) in todo {
+            let verts = lbs(model, &frame.truth)?;
             let views: Vec<Result<()>> = rig
                 .par_iter()
                 .enumerate()
@@ -400,7 +540,7 @@ fn generate_into(
                         &verts,
                         &head.mesh,
                         &appearance,
-                        &act,
+                        &frame.activations,
                         config.wrinkle_strength,
                     );
                     let (i, m) = frame_names(t, c);
@@ -410,8 +550,14 @@ fn generate_into(
                 })
                 .collect();
             views.into_iter().collect::<Result<Vec<()>>>()?;
-            io::npy::write(&eta_path(&param), &[eta.len()], &eta)?;
-            pose.save_npz(&param)?; // last: its presence marks the timestep complete
+            io::npy::write(&eta_path(&param), &[frame.eta.len()], &frame.eta)?;
+            write_truth(
+                &truth_path(&param),
+                &frame.truth,
+                &frame.activations,
+                &frame.tension,
+            )?;
+            frame.reported.save_npz(&param)?; // last: its presence marks the timestep complete
         }
         save_transforms(&dir.join("transforms.json"), &records)?;
         global += seq.frames.len();
@@ -429,8 +575,11 @@ fn generate_into(
     for (name, frames) in ["train", "val", "test", "free"].iter().zip(&splits) {
         save_transforms(&union.join(format!("transforms_{name}.json")), frames)?;
     }
-    HeadPose::neutral(model).save_npz(&union.join("canonical_flame_param.npz"))?;
+    subject
+        .neutral(model)
+        .save_npz(&union.join("canonical_flame_param.npz"))?;
     let mut summary = Summary {
+        subject: config.subject,
         sequences: seqs.len(),
         timesteps: global,
         cameras: rig.len(),

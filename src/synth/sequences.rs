@@ -145,7 +145,7 @@ pub struct Sequence {
 }
 
 /// Smooth bump on [c - w, c + w], 1 at c.
-fn bump(t: f32, c: f32, w: f32) -> f32 {
+pub(super) fn bump(t: f32, c: f32, w: f32) -> f32 {
     let x = (t - c) / w;
     if x.abs() >= 1.0 {
         0.0
