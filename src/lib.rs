@@ -9,6 +9,8 @@
 //! 2. The avatar: [`texel`] (UV layout maps, sample grid, per-face frames) → [`model`] (the
 //!    networks: condition and camera to local texel attributes) → [`lift`] (local texel
 //!    attributes to 3D Gaussians) → [`splat`] (the differentiable Gaussian rasterizer).
+//!    [`gaussianavatars`], a sibling of [`model`], is the GaussianAvatars baseline (Gaussians
+//!    bound to mesh triangles); both models offer [`drivable::Drivable`].
 //! 3. Learning and judging: [`metrics`] (losses and image metrics, with the pretrained VGG16
 //!    / AlexNet weights) → [`train`] (the objective and training through burn's learner) →
 //!    [`eval`] (the paper's evaluation protocol, tables, panels, curves).
@@ -24,9 +26,11 @@ pub mod cli;
 pub mod data;
 pub mod demo;
 pub mod device;
+pub mod drivable;
 pub mod drive;
 pub mod error;
 pub mod eval;
+pub mod gaussianavatars;
 pub mod head;
 pub mod io;
 pub mod lift;

@@ -38,7 +38,8 @@ pub struct PlyArgs {
     #[arg(long)]
     pub render: bool,
     /// SH degree of the files (0-3): above 0, `f_rest_*` coefficients are written as zeros
-    /// (the same colours) for 3DGS loaders that insist on a degree (3: 45 `f_rest_*`).
+    /// (the same colours) for 3DGS loaders that insist on a degree (3: 45 `f_rest_*`). A
+    /// GaussianAvatars avatar's files keep its own coefficients (and degree, when higher).
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
     pub sh_degree: u8,
 }
@@ -74,20 +75,36 @@ fn export_frames(a: &PlyArgs, d: &Driven) -> anyhow::Result<()> {
     let mut total = ExportStats::default();
     for (k, (f, cam)) in d.motion.frames.iter().zip(&d.cameras).enumerate() {
         let i = d.first + k;
-        let (rgb, g) = drive::render_frame(&d.avatar, &f.conditioning, cam, &d.device)?;
-        let host =
-            |t: burn::tensor::Tensor<2>| -> Vec<f32> { t.into_data().iter::<f32>().collect() };
-        let means = host(g.means);
-        let cov6 = host(g.cov6);
-        let colors = host(g.colors);
-        let opacities: Vec<f32> = g.opacities.into_data().iter::<f32>().collect();
-        let (mut p, stats) = drive::to_ply(&HostGaussians {
-            means: &means,
-            cov6: &cov6,
-            colors: &colors,
-            opacities: &opacities,
-        })?;
-        p.pad_sh_degree(a.sh_degree.into())?;
+        let (rgb, g) = drive::render_frame(d.avatar.as_ref(), &f.conditioning, cam, &d.device)?;
+        let (mut p, stats) = match d.avatar.frame_ply(&f.conditioning) {
+            // The model's own world-space Gaussians (SH coefficients kept).
+            Some(p) => {
+                let p = p?;
+                let stats = ExportStats {
+                    gaussians: p.len(),
+                    ..Default::default()
+                };
+                (p, stats)
+            }
+            None => {
+                let host = |t: burn::tensor::Tensor<2>| -> Vec<f32> {
+                    t.into_data().iter::<f32>().collect()
+                };
+                let means = host(g.means);
+                let cov6 = host(g.cov6);
+                let colors = host(g.colors);
+                let opacities: Vec<f32> = g.opacities.into_data().iter::<f32>().collect();
+                drive::to_ply(&HostGaussians {
+                    means: &means,
+                    cov6: &cov6,
+                    colors: &colors,
+                    opacities: &opacities,
+                })?
+            }
+        };
+        // Padded to --sh-degree; a model's own higher degree is kept.
+        let degree = p.sh_degree.max(a.sh_degree.into());
+        p.pad_sh_degree(degree)?;
         ply::write(&a.out.join(format!("{i:05}.ply")), &p)?;
         let cam_path = a.out.join(format!("{i:05}_camera.json"));
         let cam_file = CameraFile {

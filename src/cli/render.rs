@@ -10,11 +10,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::camera::Camera;
 use crate::device::BackendKind;
+use crate::drivable::Drivable;
 use crate::drive::{self, CameraPath, Identity, Motion, MotionKind, RenderOptions, View};
 use crate::eval::run::load_avatar;
+use crate::gaussianavatars::GaAvatar;
 use crate::head::HeadAsset;
 use crate::limits;
-use crate::model::Avatar;
 
 /// Camera paths on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -30,7 +31,9 @@ pub enum CamerasArg {
 /// Which avatar, driven by what, seen from where.
 #[derive(Debug, Args)]
 pub struct DriveArgs {
-    /// The trained avatar: a `texavatars train` output folder (`avatar.json`, `avatar.bpk`).
+    /// The trained avatar: a `texavatars train` output folder (`avatar.json`, `avatar.bpk`),
+    /// or a GaussianAvatars output folder (`point_cloud.ply` with `binding_0`, directly or in
+    /// `point_cloud/iteration_N/`; give its FLAME model with teeth as --head).
     #[arg(long)]
     pub checkpoint: PathBuf,
     /// The motion: a dataset split (`DATA/transforms_test.json`), another subject's FLAME
@@ -62,8 +65,8 @@ pub struct DriveArgs {
     pub frames: Option<String>,
     /// The avatar's subject for FLAME-parameter and curve motions: a `flame_param` `.npz`
     /// whose shape and static offsets are used. Default: the run's
-    /// `canonical_flame_param.npz` (the subject it was trained on), else the head model's
-    /// mean shape.
+    /// `canonical_flame_param.npz` (the subject it was trained on) or a GaussianAvatars
+    /// folder's `flame_param.npz`, else the head model's mean shape.
     #[arg(long)]
     pub identity: Option<PathBuf>,
     /// The head model the avatar was trained with (`.npz`, its `.obj` next to it). Default:
@@ -77,7 +80,7 @@ pub struct DriveArgs {
 
 /// A loaded avatar with its motion and cameras.
 pub struct Driven {
-    pub avatar: Avatar,
+    pub avatar: Box<dyn Drivable>,
     pub motion: Motion,
     pub cameras: Vec<Camera>,
     pub device: burn::tensor::Device,
@@ -146,17 +149,25 @@ impl DriveArgs {
             }
         };
         let device = self.backend.device();
-        let avatar = load_avatar(&self.checkpoint, &head, &device)?;
+        let (avatar, trained): (Box<dyn Drivable>, PathBuf) =
+            if GaAvatar::find(&self.checkpoint).is_some() {
+                let ga = GaAvatar::load(
+                    &self.checkpoint,
+                    &head.model.faces,
+                    head.model.num_vertices(),
+                )?;
+                let identity = ga.flame_param().unwrap_or_default();
+                (Box::new(ga), identity)
+            } else {
+                (
+                    Box::new(load_avatar(&self.checkpoint, &head, &device)?),
+                    self.checkpoint.join(crate::train::files::IDENTITY),
+                )
+            };
         let identity = match &self.identity {
             Some(p) => Identity::load(p)?,
-            None => {
-                let trained = self.checkpoint.join(crate::train::files::IDENTITY);
-                if trained.is_file() {
-                    Identity::load(&trained)?
-                } else {
-                    Identity::mean(&head.model)
-                }
-            }
+            None if trained.is_file() => Identity::load(&trained)?,
+            None => Identity::mean(&head.model),
         };
         let mut motion = Motion::load(&self.motion, &head.model, &head.meta, &identity)?;
         let first = match &self.frames {
@@ -191,8 +202,8 @@ impl DriveArgs {
             distance: self.distance,
         };
         let cameras = drive::cameras(&motion, path, &view)?;
-        drive::render::check_motion(&avatar, &motion)?;
-        drive::render::check_render_memory(&avatar, &motion, &cameras)?;
+        drive::render::check_motion(avatar.as_ref(), &motion)?;
+        drive::render::check_render_memory(avatar.as_ref(), &motion, &cameras)?;
         Ok(Driven {
             avatar,
             motion,
@@ -245,7 +256,7 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         mp4: !a.no_mp4,
     };
     let report = drive::render_motion(
-        &d.avatar,
+        d.avatar.as_ref(),
         &d.motion,
         &d.cameras,
         &d.device,

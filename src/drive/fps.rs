@@ -13,10 +13,10 @@ use burn::tensor::Device;
 
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drive::render::frame_inputs;
 use crate::error::{Error, Result};
 use crate::model::Avatar;
 use crate::model::constants::BACKGROUND;
+use crate::model::drivable::frame_inputs;
 use crate::splat::{self, SplatParams};
 
 /// One round's figures (per render, milliseconds, means over the round).

@@ -9,19 +9,19 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::Device;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::imageops::FilterType;
 use image::{Delay, Frame, RgbImage, RgbaImage};
 
 use crate::camera::Camera;
 use crate::data::Conditioning;
+use crate::drivable::Drivable;
 use crate::drive::motion::Motion;
 use crate::drive::outputs;
 use crate::error::{Error, Result};
 use crate::io;
 use crate::limits;
-use crate::model::Avatar;
 use crate::splat::Gaussians;
 
 /// Frames on the contact sheet (evenly spread over the motion).
@@ -53,28 +53,9 @@ pub struct RenderReport {
     pub mp4: std::result::Result<PathBuf, String>,
 }
 
-/// The networks' condition `[expr, pose, eta]` [1, C] and the posed vertices [1, V, 3] of a
-/// motion frame.
-pub fn frame_inputs(c: &Conditioning, device: &Device) -> (Tensor<2>, Tensor<3>) {
-    let cond: Vec<f32> = c
-        .expr
-        .iter()
-        .chain(&c.pose)
-        .chain(&c.eta)
-        .copied()
-        .collect();
-    let n = cond.len();
-    let v: Vec<f32> = c.vertices.iter().flatten().copied().collect();
-    (
-        Tensor::from_data(TensorData::new(cond, [1, n]), device),
-        Tensor::from_data(TensorData::new(v, [1, c.vertices.len(), 3]), device),
-    )
-}
-
 /// Checks that a motion fits an avatar (vertex count and condition width).
-pub fn check_motion(avatar: &Avatar, motion: &Motion) -> Result<()> {
+pub fn check_motion(avatar: &dyn Drivable, motion: &Motion) -> Result<()> {
     let what = motion.source.display().to_string();
-    let want = avatar.net.cond_dim;
     for f in &motion.frames {
         let c = &f.conditioning;
         if c.vertices.len() != avatar.num_vertices() {
@@ -90,7 +71,7 @@ pub fn check_motion(avatar: &Avatar, motion: &Motion) -> Result<()> {
             ));
         }
         let got = c.expr.len() + c.pose.len() + c.eta.len();
-        if got != want {
+        if let Some(want) = avatar.condition_width().filter(|w| *w != got) {
             return Err(Error::invalid(
                 &what,
                 "condition",
@@ -103,29 +84,12 @@ pub fn check_motion(avatar: &Avatar, motion: &Motion) -> Result<()> {
 
 /// The avatar's image [H, W, 3] (host, row-major) and Gaussians for one frame and camera.
 pub fn render_frame(
-    avatar: &Avatar,
+    avatar: &dyn Drivable,
     c: &Conditioning,
     camera: &Camera,
     device: &Device,
 ) -> Result<(Vec<f32>, Gaussians)> {
-    let pluecker = avatar
-        .net
-        .view_input(std::slice::from_ref(camera), device)?;
-    render_frame_with(avatar, c, camera, pluecker, device)
-}
-
-/// [`render_frame`] with the camera's Pluecker map already computed
-/// ([`crate::model::TexAvatarNet::view_input`]), e.g. kept while the camera stays put.
-pub fn render_frame_with(
-    avatar: &Avatar,
-    c: &Conditioning,
-    camera: &Camera,
-    pluecker: Tensor<4>,
-    device: &Device,
-) -> Result<(Vec<f32>, Gaussians)> {
-    let (cond, verts) = frame_inputs(c, device);
-    let maps = avatar.net.forward(cond, pluecker)?;
-    let g = avatar.gaussians(&maps, 0, verts.squeeze_dim::<2>(0))?;
+    let g = avatar.frame_gaussians(c, camera, device)?;
     let params = crate::splat::SplatParams {
         camera: *camera,
         background: crate::model::constants::BACKGROUND,
@@ -143,7 +107,7 @@ pub fn render_frame_with(
 /// behind. Frames are encoded into the GIF as they are rendered, so memory does not grow
 /// with the motion's length. On an error the temporary files are removed.
 pub fn render_motion(
-    avatar: &Avatar,
+    avatar: &dyn Drivable,
     motion: &Motion,
     cameras: &[Camera],
     device: &Device,
@@ -177,7 +141,11 @@ pub fn render_motion(
 /// The memory a render of `motion` from `cameras` needs, checked against
 /// [`crate::limits::budget`] (the motion's frames held, one frame's buffers at the largest
 /// camera, the avatar's inference).
-pub fn check_render_memory(avatar: &Avatar, motion: &Motion, cameras: &[Camera]) -> Result<()> {
+pub fn check_render_memory(
+    avatar: &dyn Drivable,
+    motion: &Motion,
+    cameras: &[Camera],
+) -> Result<()> {
     let what = motion.source.display().to_string();
     let (mut w, mut h, mut px) = (0u64, 0u64, 0u64);
     for c in cameras {
@@ -198,10 +166,7 @@ pub fn check_render_memory(avatar: &Avatar, motion: &Motion, cameras: &[Camera])
     let estimate = limits::Estimate::new()
         .add(format!("{w}x{h} frame buffers"), image)
         .add(format!("{} motion frames", motion.frames.len()), frames)
-        .add(
-            "avatar",
-            limits::avatar_bytes(avatar.net.uv_res, avatar.num_gaussians()),
-        );
+        .add("avatar", avatar.inference_bytes());
     let field = if frames > image {
         "frames"
     } else {
@@ -211,7 +176,7 @@ pub fn check_render_memory(avatar: &Avatar, motion: &Motion, cameras: &[Camera])
 }
 
 fn render_frames(
-    avatar: &Avatar,
+    avatar: &dyn Drivable,
     motion: &Motion,
     cameras: &[Camera],
     device: &Device,
@@ -228,18 +193,8 @@ fn render_frames(
     let gif = opts.out.join("render.gif");
     let mut gif_out = GifWriter::create(&gif, opts.fps)?;
     let mut frames = Vec::with_capacity(n);
-    let mut view: Option<(Camera, Tensor<4>)> = None;
     for (i, (f, cam)) in motion.frames.iter().zip(cameras).enumerate() {
-        // The Pluecker map depends on the camera alone: kept while it stays put.
-        let pluecker = match &view {
-            Some((c, p)) if c == cam => p.clone(),
-            _ => {
-                let p = avatar.net.view_input(std::slice::from_ref(cam), device)?;
-                view = Some((*cam, p.clone()));
-                p
-            }
-        };
-        let (rgb, _) = render_frame_with(avatar, &f.conditioning, cam, pluecker, device)?;
+        let (rgb, _) = render_frame(avatar, &f.conditioning, cam, device)?;
         let (w, h) = (cam.width as usize, cam.height as usize);
         let path = dir.join(format!("{i:05}.png"));
         io::image::write_png(&path, w, h, &rgb)?;

@@ -177,6 +177,31 @@ pub fn read(path: &Path) -> Result<PlyGaussians> {
 
 /// Parses a 3DGS PLY from memory; `what` names the source in errors.
 pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
+    Ok(parse_any(bytes, what, false)?.0)
+}
+
+/// Reads a GaussianAvatars `point_cloud.ply`: the Gaussians as stored (local to their
+/// triangles) and `binding_0`, each Gaussian's triangle. GaussianAvatars' `save_ply`
+/// (`scene/gaussian_model.py`, `construct_list_of_attributes`) writes every property,
+/// the binding included, as `float`; an index that is negative, fractional or not finite
+/// is an error naming the vertex.
+pub fn read_bound(path: &Path) -> Result<(PlyGaussians, Vec<u32>)> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let what = path.display().to_string();
+    match parse_any(&bytes, &what, true)? {
+        (g, Some(b)) => Ok((g, b)),
+        (_, None) => Err(Error::invalid(
+            what,
+            "binding_0",
+            "missing: a GaussianAvatars point_cloud.ply binds every Gaussian to a FLAME \
+             triangle; this is a world-space 3DGS scene",
+        )),
+    }
+}
+
+/// [`parse`]; with `bound`, a `binding_0` property is read (GaussianAvatars) instead of
+/// refused.
+fn parse_any(bytes: &[u8], what: &str, bound: bool) -> Result<(PlyGaussians, Option<Vec<u32>>)> {
     let err = |field: &str, why: String| Error::invalid(what, field, why);
     let end_marker = b"end_header";
     let header_end = bytes
@@ -238,13 +263,18 @@ pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
     if elements_before_vertex {
         return Err(err("element", "the vertex element must come first".into()));
     }
-    if let Some(p) = props.iter().find(|p| p.name.starts_with("binding_")) {
+    if let Some(p) = props
+        .iter()
+        .find(|p| p.name.starts_with("binding_"))
+        .filter(|_| !bound)
+    {
         return Err(err(
             &p.name,
             "this is a GaussianAvatars avatar (`point_cloud.ply`): each Gaussian's position, \
              rotation and scale are local to the FLAME triangle it is bound to, and placing \
              them needs the tracked mesh (`flame_param.npz`); it is not a world-space 3DGS \
-             scene"
+             scene. Drive it with `texavatars render --checkpoint FOLDER --motion \
+             FOLDER/flame_param.npz --head FLAME_WITH_TEETH.npz`"
                 .into(),
         ));
     }
@@ -262,6 +292,17 @@ pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
         need("rot_2")?,
         need("rot_3")?,
     ];
+    let binding = if bound { index("binding_0") } else { None };
+    if let Some(p) = props
+        .iter()
+        .find(|p| p.name.starts_with("binding_") && p.name != "binding_0")
+        .filter(|_| bound)
+    {
+        return Err(err(
+            &p.name,
+            "GaussianAvatars binds each Gaussian to one triangle (`binding_0` only)".into(),
+        ));
+    }
     let mut rest = Vec::new();
     while let Some(i) = index(&format!("f_rest_{}", rest.len())) {
         rest.push(i);
@@ -289,7 +330,18 @@ pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
         quats: Vec::with_capacity(4 * n),
     };
     let per = k - 1;
-    for row in rows.chunks(props.len().max(1)) {
+    let mut faces = binding.map(|_| Vec::with_capacity(n));
+    for (r, row) in rows.chunks(props.len().max(1)).enumerate() {
+        if let (Some(i), Some(faces)) = (binding, faces.as_mut()) {
+            let f = row[i];
+            if !(f.is_finite() && f >= 0.0 && f.fract() == 0.0 && f < u32::MAX as f32) {
+                return Err(err(
+                    "binding_0",
+                    format!("vertex {r}: {f} is not a triangle index"),
+                ));
+            }
+            faces.push(f as u32);
+        }
         g.means.extend(xyz.map(|i| row[i]));
         g.sh.extend(dc.map(|i| row[i]));
         for coeff in 0..per {
@@ -301,7 +353,7 @@ pub fn parse(bytes: &[u8], what: &str) -> Result<PlyGaussians> {
         g.log_scales.extend(scales.map(|i| row[i]));
         g.quats.extend(rots.map(|i| row[i]));
     }
-    Ok(g)
+    Ok((g, faces))
 }
 
 fn read_rows(
@@ -580,6 +632,26 @@ mod tests {
             }
         }
         assert_eq!(parse(&plain, "plain.ply").unwrap().len(), 2);
+        // Read as what it is: the Gaussians as stored and each one's triangle.
+        let (g, faces) = read_bound(&p).unwrap();
+        assert_eq!(faces, vec![0, 7]);
+        assert_eq!((g.len(), g.sh_degree), (2, 0));
+        // Written as `j as f32 * 0.01` for property j.
+        assert_eq!(g.means[..3], [0.0, 0.01, 2.0 * 0.01]);
+        assert_eq!(g.quats[..4], [1.0, 14.0 * 0.01, 15.0 * 0.01, 16.0 * 0.01]);
+        // A binding that is no triangle index names the vertex; a plain scene has none.
+        let at = bytes.len() - 4;
+        for bad in [-1.0f32, 2.5, f32::NAN] {
+            let mut b = bytes.clone();
+            b[at..].copy_from_slice(&bad.to_le_bytes());
+            std::fs::write(&p, &b).unwrap();
+            let e = read_bound(&p).unwrap_err().to_string();
+            assert!(e.contains("binding_0") && e.contains("vertex 1"), "{e}");
+        }
+        std::fs::write(&p, &plain).unwrap();
+        let e = read_bound(&p).unwrap_err().to_string();
+        assert!(e.contains("binding_0") && e.contains("missing"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// A vertex count the body cannot hold is an error naming the file, never a panic or a

@@ -78,10 +78,19 @@ pub fn face_frame(kind: FrameKind, v: [Vec3; 3]) -> Mat3 {
             from_cols(e1, e2, scale(n, 1.0 / safe_norm(n).sqrt()))
         }
         FrameKind::ScaledRotation => {
-            let (a, k) = scaled_rotation_parts(e1, e2);
-            from_cols(scale(a[0], k), scale(a[1], k), scale(a[2], k))
+            let (r, k) = scaled_rotation(v);
+            r.map(|row| row.map(|x| x * k))
         }
     }
+}
+
+/// GaussianAvatars' frame of the triangle `(v0, v1, v2)`: the rotation `R = [a0 | a1 | a2]`
+/// (columns) and the scale `k`, as GaussianAvatars' `compute_face_orientation`
+/// (`utils/graphics_utils.py`, `return_scale=True`) computes them for its binding and as the
+/// lift's [`FrameKind::ScaledRotation`] uses them. `R` is a proper rotation (`a2 = a0 x a1`).
+pub fn scaled_rotation(v: [Vec3; 3]) -> (Mat3, f32) {
+    let (a, k) = scaled_rotation_parts(sub(v[1], v[0]), sub(v[2], v[0]));
+    (from_cols(a[0], a[1], a[2]), k)
 }
 
 /// GaussianAvatars' frame: `a0 = norm(e1)`, `a1 = norm(a0 x e2)`, `a2 = -norm(a1 x a0)`,

@@ -1,0 +1,51 @@
+//! The one interface every avatar model offers to the commands that drive it: a frame in,
+//! Gaussians out.
+//!
+//! `render`, `export ply` and the drive helpers ([`crate::drive`]) hold a
+//! `Box<dyn Drivable>` and never name a model. The models are sibling folders that each
+//! implement this trait: [`crate::model`] (TexAvatars: decoders, texel lift) and
+//! [`crate::gaussianavatars`] (GaussianAvatars: Gaussians bound to mesh triangles); neither
+//! knows the other, and a third model is one more folder and one more `impl`.
+
+use burn::tensor::Device;
+
+use crate::camera::Camera;
+use crate::data::Conditioning;
+use crate::error::Result;
+use crate::splat::Gaussians;
+use crate::splat::ply::PlyGaussians;
+
+/// An avatar that turns one tracked frame into Gaussians.
+pub trait Drivable {
+    /// The model's name in messages ("TexAvatars", "GaussianAvatars").
+    fn model_name(&self) -> &'static str;
+
+    /// Vertices of the posed mesh the avatar is rigged to.
+    fn num_vertices(&self) -> usize;
+
+    /// Values of `expr`, `pose` and `eta` together that the avatar reads per frame; `None`
+    /// when it reads only the posed mesh.
+    fn condition_width(&self) -> Option<usize>;
+
+    /// Gaussians per frame.
+    fn num_gaussians(&self) -> usize;
+
+    /// Bytes one frame's inference holds (for [`crate::limits`]).
+    fn inference_bytes(&self) -> u64;
+
+    /// The Gaussians of frame `c` for `camera` (view-dependent colours are evaluated for
+    /// it).
+    fn frame_gaussians(
+        &self,
+        c: &Conditioning,
+        camera: &Camera,
+        device: &Device,
+    ) -> Result<Gaussians>;
+
+    /// The frame's world-space Gaussians as a 3DGS PLY in the model's own terms (e.g. its
+    /// SH coefficients), when it has them; `None`: exporters convert
+    /// [`Drivable::frame_gaussians`] (colours baked for the camera).
+    fn frame_ply(&self, _c: &Conditioning) -> Option<Result<PlyGaussians>> {
+        None
+    }
+}

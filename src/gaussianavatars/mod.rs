@@ -1,0 +1,15 @@
+//! GaussianAvatars (Qian et al., CVPR 2024), the binding baseline: Gaussians stored local to
+//! the FLAME triangle each is bound to ([`binding`]), placed every frame by that triangle's
+//! posed frame. A sibling of [`crate::model`]; both offer [`crate::drivable::Drivable`].
+//!
+//! What is here: GaussianAvatars' output folders ([`folder`]: `point_cloud.ply` with
+//! `binding_0`, SH degree 0-3, and `flame_param.npz`) loaded, driven, rendered by
+//! texavatars' rasterizer and exported as world-space PLY files. Training a GaussianAvatars
+//! model in texavatars (adaptive density control with binding inheritance, its objective
+//! and schedule) is not here yet.
+
+pub mod binding;
+pub mod folder;
+
+pub use binding::{FaceFrame, face_frames, to_world};
+pub use folder::GaAvatar;
