@@ -17,6 +17,7 @@
 
 #[path = "common/cli.rs"]
 mod cli;
+mod tiny;
 
 use std::path::{Path, PathBuf};
 
@@ -294,7 +295,28 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
         .filter(|p| p.iter().any(|&c| c < 0.98))
         .count();
     assert!(drawn > 0, "nothing drawn");
-    for d in [&model, &out, &render] {
+
+    // Scored by `eval` like a TexAvatars run, on a tiny benchmark of the same head.
+    let data = tmp("data");
+    tiny::synth_data(&data);
+    let opts = texavatars::eval::run::EvalOptions {
+        data: data.join("union"),
+        run: model.clone(),
+        out: tmp("eval"),
+        splits: vec![texavatars::data::Split::Test],
+        extra: Vec::new(),
+        head: None,
+        lpips: false,
+        stride: 4,
+        panels: 0,
+        backend: texavatars::device::BackendKind::Flex,
+        paths: texavatars::data::PathPolicy::InsideRoot,
+    };
+    let report = texavatars::eval::run::evaluate(&opts, &mut |_| {}).expect("eval");
+    let m = &report.means["test"];
+    assert_eq!(m.images, 8);
+    assert!(m.psnr.is_finite() && m.psnr > 0.0, "{}", m.psnr);
+    for d in [&model, &out, &render, &data, &opts.out] {
         let _ = std::fs::remove_dir_all(d);
     }
 }

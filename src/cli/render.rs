@@ -10,10 +10,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::camera::Camera;
 use crate::device::BackendKind;
-use crate::drivable::Drivable;
+use crate::drivable::{self, Drivable};
 use crate::drive::{self, CameraPath, Identity, Motion, MotionKind, RenderOptions, View};
-use crate::eval::run::load_avatar;
-use crate::gaussianavatars::GaAvatar;
+
 use crate::head::HeadAsset;
 use crate::limits;
 
@@ -149,24 +148,10 @@ impl DriveArgs {
             }
         };
         let device = self.backend.device();
-        let (avatar, trained): (Box<dyn Drivable>, PathBuf) =
-            if GaAvatar::find(&self.checkpoint).is_some() {
-                let ga = GaAvatar::load(
-                    &self.checkpoint,
-                    &head.model.faces,
-                    head.model.num_vertices(),
-                )?;
-                let identity = ga.flame_param().unwrap_or_default();
-                (Box::new(ga), identity)
-            } else {
-                (
-                    Box::new(load_avatar(&self.checkpoint, &head, &device)?),
-                    self.checkpoint.join(crate::train::files::IDENTITY),
-                )
-            };
-        let identity = match &self.identity {
+        let loaded = drivable::load(&self.checkpoint, &head, &device)?;
+        let avatar = loaded.avatar;
+        let identity = match self.identity.as_ref().or(loaded.identity.as_ref()) {
             Some(p) => Identity::load(p)?,
-            None if trained.is_file() => Identity::load(&trained)?,
             None => Identity::mean(&head.model),
         };
         let mut motion = Motion::load(&self.motion, &head.model, &head.meta, &identity)?;

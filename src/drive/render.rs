@@ -57,27 +57,33 @@ pub struct RenderReport {
 pub fn check_motion(avatar: &dyn Drivable, motion: &Motion) -> Result<()> {
     let what = motion.source.display().to_string();
     for f in &motion.frames {
-        let c = &f.conditioning;
-        if c.vertices.len() != avatar.num_vertices() {
-            return Err(Error::invalid(
-                &what,
-                "vertices",
-                format!(
-                    "the motion's head has {} vertices, the avatar's {}: drive it with the head \
-                     model it was trained on (--head)",
-                    c.vertices.len(),
-                    avatar.num_vertices()
-                ),
-            ));
-        }
-        let got = c.expr.len() + c.pose.len() + c.eta.len();
-        if let Some(want) = avatar.condition_width().filter(|w| *w != got) {
-            return Err(Error::invalid(
-                &what,
-                "condition",
-                format!("{got} values, the avatar's networks take {want}"),
-            ));
-        }
+        check_frame(avatar, &f.conditioning, &what)?;
+    }
+    Ok(())
+}
+
+/// Checks that one frame fits an avatar: its posed mesh's vertex count and, for a model
+/// with networks, its condition width; `what` names the frame's source in errors.
+pub fn check_frame(avatar: &dyn Drivable, c: &Conditioning, what: &str) -> Result<()> {
+    if c.vertices.len() != avatar.num_vertices() {
+        return Err(Error::invalid(
+            what,
+            "vertices",
+            format!(
+                "the motion's head has {} vertices, the avatar's {}: drive it with the head \
+                 model it was trained on (--head)",
+                c.vertices.len(),
+                avatar.num_vertices()
+            ),
+        ));
+    }
+    let got = c.expr.len() + c.pose.len() + c.eta.len();
+    if let Some(want) = avatar.condition_width().filter(|w| *w != got) {
+        return Err(Error::invalid(
+            what,
+            "condition",
+            format!("{got} values, the avatar's networks take {want}"),
+        ));
     }
     Ok(())
 }

@@ -21,9 +21,9 @@ use std::time::Instant;
 use burn::module::Module;
 use serde::Serialize;
 
-use crate::data::identity::CANONICAL;
-use crate::data::{HeadBatcher, HeadDataset, Identity, PathPolicy, Split};
+use crate::data::{Conditioning, HeadDataset, Identity, PathPolicy, Split};
 use crate::device::BackendKind;
+use crate::drive::render::{check_frame, render_frame};
 use crate::error::{Error, Result};
 use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
 use crate::head::HeadAsset;
@@ -135,12 +135,11 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
         Some(p) => HeadAsset::load(p, None)?,
         None => head_for(&opts.data)?,
     };
-    let avatar = load_avatar(&opts.run, &head, &device)?;
-    let subject = opts.run.join(CANONICAL);
-    let identity = if subject.is_file() {
-        Some(Identity::load(&subject)?)
-    } else {
-        None
+    let loaded = crate::drivable::load(&opts.run, &head, &device)?;
+    let avatar = loaded.avatar;
+    let identity = match &loaded.identity {
+        Some(p) => Some(Identity::load(p)?),
+        None => None,
     };
     let mut splits: Vec<(String, PathBuf)> = Vec::new();
     for &split in &opts.splits {
@@ -204,10 +203,19 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
             let item = ds.load_item(i)?;
             let (h, w) = (item.height(), item.width());
             let (t, c) = (item.timestep, item.camera_index);
-            let gt = item.image.clone();
-            let batch = HeadBatcher.try_batch(vec![item], &device)?;
-            let out = avatar.forward(&batch)?;
-            let render: Vec<f32> = out.renders.into_data().iter::<f32>().collect();
+            let frame = Conditioning {
+                expr: item.expr,
+                pose: item.pose,
+                eta: item.eta,
+                vertices: item.vertices,
+            };
+            check_frame(
+                avatar.as_ref(),
+                &frame,
+                &item.image_path.display().to_string(),
+            )?;
+            let (render, _) = render_frame(avatar.as_ref(), &frame, &item.camera, &device)?;
+            let gt = item.image;
             let scores = scorer.score(&gt, &render, h, w)?;
             tally.add(split, &scores);
             if panel_at.binary_search(&k).is_ok() {

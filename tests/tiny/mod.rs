@@ -26,6 +26,7 @@ pub fn synth_data(data: &Path) {
 
 /// Trains the tiny networks on `data/union` into `run` for `iterations`, a checkpoint every
 /// `checkpoint_every`.
+#[allow(dead_code)] // not every test that renders the tiny set trains on it
 pub fn train_tiny(data: &Path, run: &Path, iterations: usize, checkpoint_every: usize) {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
     let mut c = TrainConfig::load(&path).expect("tiny config");
