@@ -1,6 +1,10 @@
 //! `render`, `export ply` and `bench fps` on a tiny trained avatar (a tiny synthetic set, a
 //! few training iterations), with each kind of motion, and their errors on bad motions.
 
+#[path = "common/cli.rs"]
+mod cli;
+#[path = "drive/gaussianavatars.rs"]
+mod gaussianavatars;
 mod tiny;
 
 use std::path::{Path, PathBuf};

@@ -1,5 +1,6 @@
 //! A GaussianAvatars output folder built by hand in GaussianAvatars' own layout, driven,
-//! exported and rendered by texavatars.
+//! exported, rendered and scored by texavatars (a module of `tests/drive.rs`: one test
+//! binary less to build and link).
 //!
 //! The layout follows GaussianAvatars' code, not texavatars' writer:
 //! - `point_cloud.ply`: `GaussianModel.construct_list_of_attributes` / `save_ply`
@@ -15,15 +16,13 @@
 //! formulas: `compute_face_orientation` (`utils/graphics_utils.py`), and `get_xyz`,
 //! `get_scaling`, `get_rotation` (`scene/gaussian_model.py`).
 
-#[path = "common/cli.rs"]
-mod cli;
-mod tiny;
-
 use std::path::{Path, PathBuf};
 
 use texavatars::head::HeadAsset;
 use texavatars::io::npz::NpzOut;
 use texavatars::splat::ply;
+
+use crate::{cli, tiny};
 
 const SH_REST: usize = 45;
 
