@@ -4,12 +4,15 @@
 //!
 //! What is here: GaussianAvatars' output folders ([`folder`]: `point_cloud.ply` with
 //! `binding_0`, SH degree 0-3, and `flame_param.npz`) loaded, driven, rendered by
-//! texavatars' rasterizer and exported as world-space PLY files. Training a GaussianAvatars
-//! model in texavatars (adaptive density control with binding inheritance, its objective
-//! and schedule) is not here yet.
+//! texavatars' rasterizer and exported as world-space PLY files; [`model`], the stored
+//! Gaussians as a burn module placed by differentiable tensor ops (the lift's, with
+//! GaussianAvatars' frames). Training a GaussianAvatars model in texavatars (adaptive
+//! density control with binding inheritance, its objective and schedule) is not here yet.
 
 pub mod binding;
 pub mod folder;
+pub mod model;
 
 pub use binding::{FaceFrame, face_frames, to_world};
 pub use folder::GaAvatar;
+pub use model::GaModel;
