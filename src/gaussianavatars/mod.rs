@@ -10,7 +10,9 @@
 //! density control with binding inheritance, its objective and schedule) is not here yet.
 
 pub mod binding;
+pub mod constants;
 pub mod folder;
+pub mod losses;
 pub mod model;
 
 pub use binding::{FaceFrame, face_frames, to_world};

@@ -14,6 +14,7 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::binding::check_binding;
+use super::constants::INIT_OPACITY;
 use crate::error::Result;
 use crate::kernels::lift::constants::{
     LOCAL_CHANNELS, LOCAL_LOG_SCALE, LOCAL_MEAN, LOCAL_OPACITY, LOCAL_QUAT, OUT_COV, OUT_MEAN,
@@ -71,6 +72,32 @@ impl GaModel {
             ),
             sh_degree: g.sh_degree,
         })
+    }
+
+    /// GaussianAvatars' initialisation (`create_from_pcd` without a point cloud): one Gaussian
+    /// per triangle at its centroid (local position 0), local log scale 0 (the triangle's own
+    /// scale), identity rotation, opacity 0.1, the DC colour coefficient uniform in
+    /// [0, 1/255) (`np.random.random / 255`, a near-grey start), higher bands 0.
+    pub fn init(num_faces: usize, sh_degree: usize, seed: u64, device: &Device) -> Result<Self> {
+        let k = (sh_degree + 1) * (sh_degree + 1);
+        let mut rng = crate::splat::demo::Pcg::new(seed);
+        let mut sh = vec![0.0f32; num_faces * k * 3];
+        for g in sh.chunks_mut(k * 3) {
+            for c in &mut g[..3] {
+                *c = rng.uniform() / 255.0;
+            }
+        }
+        let logit = (INIT_OPACITY / (1.0 - INIT_OPACITY)).ln();
+        let stored = PlyGaussians {
+            means: vec![0.0; 3 * num_faces],
+            sh,
+            sh_degree,
+            opacity_logits: vec![logit; num_faces],
+            log_scales: vec![0.0; 3 * num_faces],
+            quats: [1.0, 0.0, 0.0, 0.0].repeat(num_faces),
+        };
+        let binding: Vec<u32> = (0..num_faces as u32).collect();
+        Self::from_stored(&stored, &binding, device)
     }
 
     /// Number of Gaussians.
@@ -181,6 +208,35 @@ mod tests {
                 .collect(),
         };
         (verts, faces, g, vec![0, 1, 1])
+    }
+
+    #[test]
+    fn initialisation_puts_one_gaussian_at_each_centroid() {
+        let device = Device::flex();
+        let mut rng = Pcg::new(9);
+        let (verts, faces, _, _) = scene(&mut rng);
+        let m = GaModel::init(faces.len(), 3, 1, &device).unwrap();
+        assert_eq!(m.len(), 2);
+        let v = Tensor::<2>::from_data(TensorData::new(verts.concat(), [verts.len(), 3]), &device);
+        let out = m.gaussians(&faces, v, [0.0, 0.0, 1.0]);
+        let frames = host_frames(&faces, &verts);
+        let means = host(out.means);
+        for (i, f) in frames.iter().enumerate() {
+            assert!(
+                means[3 * i..3 * i + 3]
+                    .iter()
+                    .zip(&f.center)
+                    .all(|(a, b)| (a - b).abs() < 1e-6)
+            );
+        }
+        let op: Vec<f32> = out.opacities.into_data().iter::<f32>().collect();
+        assert!(op.iter().all(|o| (o - 0.1).abs() < 1e-6), "{op:?}");
+        // Near grey: SH DC below 1/255, so RGB = 0.5 + C0 * dc.
+        assert!(
+            host(out.colors)
+                .iter()
+                .all(|c| (c - 0.5).abs() < 0.3 / 255.0)
+        );
     }
 
     #[test]
