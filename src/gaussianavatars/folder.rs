@@ -132,6 +132,16 @@ impl GaAvatar {
     }
 }
 
+/// Writes `point_cloud.ply` (stored Gaussians with `binding_0`) into `dir`, in
+/// GaussianAvatars' layout, so that its tools and [`GaAvatar::load`] read it; the FLAME
+/// parameters (`flame_param.npz`) are the caller's to copy beside it.
+pub fn write_point_cloud(dir: &Path, stored: &PlyGaussians, binding: &[u32]) -> Result<PathBuf> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let path = dir.join(POINT_CLOUD);
+    ply::write_bound(&path, stored, binding)?;
+    Ok(path)
+}
+
 impl Drivable for GaAvatar {
     fn model_name(&self) -> &'static str {
         "GaussianAvatars"

@@ -100,6 +100,27 @@ impl GaModel {
         Self::from_stored(&stored, &binding, device)
     }
 
+    /// The stored Gaussians and their binding on the host (what `point_cloud.ply` holds).
+    pub fn to_stored(&self) -> (PlyGaussians, Vec<u32>) {
+        let host = |t: Tensor<2>| -> Vec<f32> { t.into_data().iter::<f32>().collect() };
+        let stored = PlyGaussians {
+            means: host(self.xyz.val()),
+            sh: self.features.val().into_data().iter::<f32>().collect(),
+            sh_degree: self.sh_degree,
+            opacity_logits: self.opacity.val().into_data().iter::<f32>().collect(),
+            log_scales: host(self.scaling.val()),
+            quats: host(self.rotation.val()),
+        };
+        let binding = self
+            .binding
+            .clone()
+            .into_data()
+            .iter::<i64>()
+            .map(|f| f as u32)
+            .collect();
+        (stored, binding)
+    }
+
     /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.binding.dims()[0]
@@ -237,6 +258,15 @@ mod tests {
                 .iter()
                 .all(|c| (c - 0.5).abs() < 0.3 / 255.0)
         );
+    }
+
+    #[test]
+    fn stored_gaussians_come_back_as_they_went_in() {
+        let device = Device::flex();
+        let mut rng = Pcg::new(4);
+        let (_, _, g, binding) = scene(&mut rng);
+        let m = GaModel::from_stored(&g, &binding, &device).unwrap();
+        assert_eq!(m.to_stored(), (g, binding));
     }
 
     #[test]

@@ -422,6 +422,24 @@ fn read_rows(
 /// code does, so every viewer accepts it). The file is written to a temporary name first and
 /// renamed, so an existing file is never left half-written.
 pub fn write(path: &Path, g: &PlyGaussians) -> Result<()> {
+    write_any(path, g, None)
+}
+
+/// Writes a GaussianAvatars `point_cloud.ply`: [`write`]'s layout followed by `binding_0`,
+/// each Gaussian's triangle, as a `float` (GaussianAvatars' `save_ply` writes every
+/// attribute as numpy `f4`, `construct_list_of_attributes` appends `binding_0` last).
+pub fn write_bound(path: &Path, g: &PlyGaussians, binding: &[u32]) -> Result<()> {
+    if binding.len() != g.len() {
+        return Err(Error::invalid(
+            path.display().to_string(),
+            "binding_0",
+            format!("{} bindings for {} Gaussians", binding.len(), g.len()),
+        ));
+    }
+    write_any(path, g, Some(binding))
+}
+
+fn write_any(path: &Path, g: &PlyGaussians, binding: Option<&[u32]>) -> Result<()> {
     let n = g.len();
     let k = g.sh_coeffs();
     let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
@@ -436,6 +454,9 @@ pub fn write(path: &Path, g: &PlyGaussians) -> Result<()> {
     names.push("opacity".into());
     names.extend((0..3).map(|i| format!("scale_{i}")));
     names.extend((0..4).map(|i| format!("rot_{i}")));
+    if binding.is_some() {
+        names.push("binding_0".into());
+    }
     for name in &names {
         header.push_str(&format!("property float {name}\n"));
     }
@@ -455,6 +476,9 @@ pub fn write(path: &Path, g: &PlyGaussians) -> Result<()> {
         put(g.opacity_logits[i]);
         g.log_scales[3 * i..3 * i + 3].iter().for_each(|&v| put(v));
         g.quats[4 * i..4 * i + 4].iter().for_each(|&v| put(v));
+        if let Some(b) = binding {
+            put(b[i] as f32);
+        }
     }
     let tmp = path.with_extension("ply.partial");
     let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;

@@ -271,6 +271,17 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
         }
     }
 
+    // texavatars writes the same file GaussianAvatars does: byte for byte the hand-built one.
+    let (stored, binding) = ply::read_bound(&dir.join("point_cloud.ply")).expect("read");
+    let again = tmp("write");
+    let written = texavatars::gaussianavatars::folder::write_point_cloud(&again, &stored, &binding)
+        .expect("write");
+    assert_eq!(
+        std::fs::read(&written).expect("written"),
+        std::fs::read(dir.join("point_cloud.ply")).expect("hand-built")
+    );
+    let _ = std::fs::remove_dir_all(&again);
+
     // Rendered with texavatars' rasterizer: the Gaussians show on the white background.
     let render = tmp("render");
     cli::texavatars_ok([
