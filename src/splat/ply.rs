@@ -425,7 +425,7 @@ pub fn write(path: &Path, g: &PlyGaussians) -> Result<()> {
     write_any(path, g, None)
 }
 
-/// Writes a GaussianAvatars `point_cloud.ply`: [`write`]'s layout followed by `binding_0`,
+/// Writes a GaussianAvatars `point_cloud.ply`: [`write()`]'s layout followed by `binding_0`,
 /// each Gaussian's triangle, as a `float` (GaussianAvatars' `save_ply` writes every
 /// attribute as numpy `f4`, `construct_list_of_attributes` appends `binding_0` last).
 pub fn write_bound(path: &Path, g: &PlyGaussians, binding: &[u32]) -> Result<()> {
