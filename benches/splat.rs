@@ -29,6 +29,7 @@ fn inputs(n: usize, device: &Device) -> SplatInputs<Dispatch> {
         colors: t2(colors, 3),
         opacities: Tensor::<1>::from_data(TensorData::new(ply.opacities(), [n]), device)
             .into_dispatch(),
+        screen: t2(vec![0.0; 2 * n], 2),
     }
 }
 

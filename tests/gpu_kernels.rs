@@ -363,7 +363,9 @@ fn gpu_backward(
     let [m, c, col, o] = s.tensors(dev);
     let (w, h) = (s.camera.width as usize, s.camera.height as usize);
     let g = upload(dev, grad_out, &[h, w, 4]);
-    let grads = gpu::backward_with_options(m, c, col, o, &s.camera, s.background, fwd, g, options);
+    let [gm, gc, gcol, go, _screen] =
+        gpu::backward_with_options(m, c, col, o, &s.camera, s.background, fwd, g, options);
+    let grads = [gm, gc, gcol, go];
     let n = s.n();
     let expected = [vec![n, 3], vec![n, 6], vec![n, 3], vec![n]];
     for (t, e) in grads.iter().zip(&expected) {

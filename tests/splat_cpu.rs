@@ -5,9 +5,10 @@
 mod common;
 
 use burn::tensor::Device;
+use burn::tensor::{Tensor, TensorData};
 use common::{Outcome, Scene, assert_close, fixture, fused, ndarray, random_scene, reference, run};
 use texavatars::splat::cpu;
-use texavatars::splat::{render, render_reference};
+use texavatars::splat::{render, render_reference, render_reference_tapped, render_tapped};
 
 #[test]
 fn fixtures_cpu_and_reference() {
@@ -57,10 +58,15 @@ fn transmittance_gradient_matches_reference() {
     let want = run(
         &scene,
         &device,
-        |g, p| render_reference(g, p).unwrap(),
+        |g, s, p| render_reference_tapped(g, s, p).unwrap(),
         Some(&tw),
     );
-    let got = run(&scene, &device, |g, p| render(g, p).unwrap(), Some(&tw));
+    let got = run(
+        &scene,
+        &device,
+        |g, s, p| render_tapped(g, s, p).unwrap(),
+        Some(&tw),
+    );
     println!("{}", assert_close("with dL/dT", &got, &want, 1e-4, 0.99));
 }
 
@@ -142,6 +148,52 @@ fn cpu_gradients_match_finite_differences() {
                 "{name}[{i}]: finite difference {fd} vs analytic {a}"
             );
         }
+    }
+}
+
+/// The screen-space tap (3DGS's `viewspace_point_tensor.grad`, which GaussianAvatars
+/// densifies by): the fused CPU renderer's tap gradient equals central finite differences
+/// of the loss when the dense reference's projected centres move by the tap's value in NDC
+/// (`reference::render_tapped`; 3DGS's units: diff-gaussian-rasterization,
+/// `cuda_rasterizer/backward.cu`, `renderCUDA`, `dL_dmean2D = dL/dpixel * 0.5 W`).
+#[test]
+fn screen_tap_gradient_matches_finite_differences() {
+    let s = smooth_scene();
+    let (w, h) = s.size();
+    let n = s.len();
+    let weights: Vec<f32> = s.grad_weights.clone();
+    let device = Device::flex();
+    let loss = |screen: Vec<f32>| -> f64 {
+        let g = s.gaussians(&device);
+        let screen = Tensor::<2>::from_data(TensorData::new(screen, [n, 2]), &device);
+        let r = render_reference_tapped(&g, screen, &s.params).unwrap();
+        let gw = Tensor::<3>::from_data(TensorData::new(weights.clone(), [h, w, 3]), &device);
+        let l = (r.image * gw).sum() + r.transmittance.sum() * 0.5;
+        l.into_scalar::<f32>() as f64
+    };
+    let got = run(
+        &s,
+        &Device::flex().autodiff(),
+        |g, t, p| render_tapped(g, t, p).unwrap(),
+        Some(&vec![0.5; w * h]),
+    );
+    assert_eq!(got.grad_screen.len(), 2 * n);
+    let eps = 1e-3f32;
+    for (i, &a) in got.grad_screen.iter().enumerate() {
+        let mut plus = vec![0.0; 2 * n];
+        plus[i] = eps;
+        let mut minus = vec![0.0; 2 * n];
+        minus[i] = -eps;
+        let fd = (loss(plus) - loss(minus)) / (2.0 * eps as f64);
+        let a = a as f64;
+        assert!(
+            a.abs() > 1e-3,
+            "screen[{i}]: the scene should move the loss"
+        );
+        assert!(
+            (fd - a).abs() <= 2e-2 * fd.abs().max(a.abs()) + 1e-3,
+            "screen[{i}]: finite difference {fd} vs tap {a}"
+        );
     }
 }
 

@@ -7,7 +7,7 @@ mod common;
 
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use common::{Scene, assert_close, fixture, fused, ndarray, random_scene, run};
-use texavatars::splat::{render, render_reference};
+use texavatars::splat::{render, render_reference_tapped, render_tapped};
 
 fn wgpu() -> Device {
     Device::wgpu(DeviceKind::DefaultDevice).autodiff()
@@ -38,7 +38,7 @@ fn wgpu_matches_cpu_and_reference_on_random_scenes() {
         let reference = run(
             &scene,
             &ndarray(),
-            |g, p| render_reference(g, p).unwrap(),
+            |g, s, p| render_reference_tapped(g, s, p).unwrap(),
             None,
         );
         println!(
@@ -71,8 +71,18 @@ fn wgpu_transmittance_gradient_matches_cpu() {
     let tw: Vec<f32> = (0..w * h)
         .map(|i| ((i * 31) % 11) as f32 / 5.0 - 1.0)
         .collect();
-    let gpu = run(&scene, &wgpu(), |g, p| render(g, p).unwrap(), Some(&tw));
-    let cpu = run(&scene, &ndarray(), |g, p| render(g, p).unwrap(), Some(&tw));
+    let gpu = run(
+        &scene,
+        &wgpu(),
+        |g, s, p| render_tapped(g, s, p).unwrap(),
+        Some(&tw),
+    );
+    let cpu = run(
+        &scene,
+        &ndarray(),
+        |g, s, p| render_tapped(g, s, p).unwrap(),
+        Some(&tw),
+    );
     println!(
         "{}",
         assert_close("dL/dT gpu vs cpu", &gpu, &cpu, 1e-4, 0.99)
@@ -102,7 +112,12 @@ fn wgpu_gradients_match_finite_differences() {
     }
     let (w, h) = s.size();
     let tw = vec![0.5f32; w * h];
-    let analytic = run(&s, &wgpu(), |g, p| render(g, p).unwrap(), Some(&tw));
+    let analytic = run(
+        &s,
+        &wgpu(),
+        |g, s, p| render_tapped(g, s, p).unwrap(),
+        Some(&tw),
+    );
     let plain = wgpu().inner();
     type Field = fn(&mut Scene) -> &mut Vec<f32>;
     let fields: [(&str, Field, &Vec<f32>, f32); 4] = [

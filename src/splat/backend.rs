@@ -18,7 +18,7 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
 };
-use burn::tensor::{DType, Shape, TensorData};
+use burn::tensor::{DType, Shape, Slice, TensorData};
 
 use crate::camera::Camera;
 use crate::splat::{cpu, gpu};
@@ -34,17 +34,26 @@ pub struct SplatParams {
 
 /// The differentiable inputs of a render.
 ///
+/// `screen` is a gradient tap, as 3DGS's `screenspace_points` (`gaussian_renderer/
+/// __init__.py`, `render`: a zero tensor passed to the rasterizer as `means2D`, whose values
+/// the rasterizer never reads): the render does not depend on its values, and its gradient
+/// is the loss's gradient w.r.t. each Gaussian's projected centre in normalised device
+/// coordinates, the quantity 3DGS and GaussianAvatars densify by. Pass zeros; track it
+/// (`require_grad`) to read that gradient.
+///
 /// # Shapes
 /// - `means`: [N, 3] world-space centres
 /// - `cov6`: [N, 6] world-space covariances (xx, xy, xz, yy, yz, zz)
 /// - `colors`: [N, 3] RGB
 /// - `opacities`: `[N]` opacity after the sigmoid
+/// - `screen`: [N, 2] the gradient tap (values unused)
 #[derive(ExtensionType, Debug, Clone)]
 pub struct SplatInputs<B: Backend> {
     pub means: FloatTensor<B>,
     pub cov6: FloatTensor<B>,
     pub colors: FloatTensor<B>,
     pub opacities: FloatTensor<B>,
+    pub screen: FloatTensor<B>,
 }
 
 /// What a forward pass keeps for its backward pass.
@@ -64,13 +73,16 @@ pub struct SplatState<B: Backend> {
     pub last: IntTensor<B>,
 }
 
-/// Gradients of the loss w.r.t. the four inputs (same shapes as [`SplatInputs`]).
+/// Gradients of the loss w.r.t. the inputs (same shapes as [`SplatInputs`]); `screen` is
+/// the gradient w.r.t. the projected centres (u, v) in pixels, `[N, 2]` (zero for culled
+/// Gaussians).
 #[derive(ExtensionType, Debug, Clone)]
 pub struct SplatGrads<B: Backend> {
     pub means: FloatTensor<B>,
     pub cov6: FloatTensor<B>,
     pub colors: FloatTensor<B>,
     pub opacities: FloatTensor<B>,
+    pub screen: FloatTensor<B>,
 }
 
 /// Backends that can render Gaussians with the fused tile rasterizer.
@@ -350,6 +362,7 @@ pub fn cpu_backward<H: HostIo>(
         cov6: floats::<H>(g.cov6, &[n, 6], &device),
         colors: floats::<H>(g.colors, &[n, 3], &device),
         opacities: floats::<H>(g.opacities, &[n], &device),
+        screen: floats::<H>(g.screen, &[n, 2], &device),
     }
 }
 
@@ -410,7 +423,7 @@ impl SplatBackend for Cube {
             tile_ranges: state.tile_ranges,
             last: state.last,
         };
-        let [means, cov6, colors, opacities] = gpu::backward(
+        let [means, cov6, colors, opacities, grad2d] = gpu::backward(
             inputs.means,
             inputs.cov6,
             inputs.colors,
@@ -420,13 +433,20 @@ impl SplatBackend for Cube {
             &fwd,
             grad_out,
         );
+        let n = grad2d.shape()[0];
         SplatGrads {
             means,
             cov6,
             colors,
             opacities,
+            screen: first_columns::<Self>(grad2d, n, 2),
         }
     }
+}
+
+/// The first `k` columns of an `[n, _]` tensor.
+fn first_columns<B: Backend>(t: FloatTensor<B>, n: usize, k: usize) -> FloatTensor<B> {
+    B::float_slice(t, &[Slice::from(0..n), Slice::from(0..k)])
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -435,23 +455,34 @@ impl SplatBackend for Cube {
 #[derive(Debug)]
 struct SplatBackward;
 
-impl<B: Backend + SplatBackend> Backward<B, 4> for SplatBackward {
+impl<B: Backend + SplatBackend> Backward<B, 5> for SplatBackward {
     type State = (SplatInputs<B>, SplatState<B>, SplatParams);
 
-    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _: &mut Checkpointer) {
+    fn backward(self, ops: Ops<Self::State, 5>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad_out = grads.consume::<B>(&ops.node);
         let (inputs, state, params) = ops.state;
         let g = B::splat_backward(inputs, state, grad_out, params);
-        let [means, cov6, colors, opacities] = ops.parents;
+        let [means, cov6, colors, opacities, screen] = ops.parents;
+        // The tap's gradient in 3DGS's units: d/d(NDC) = d/d(pixel) * (W/2, H/2)
+        // (diff-gaussian-rasterization, `cuda_rasterizer/backward.cu`, `renderCUDA`:
+        // `ddelx_dx = 0.5 * W`, `ddely_dy = 0.5 * H`).
+        let screen_grad = screen.as_ref().map(|_| {
+            let (w, h) = (params.camera.width as f32, params.camera.height as f32);
+            let device = g.screen.device();
+            let half = B::float_from_data(TensorData::new(vec![0.5 * w, 0.5 * h], [1, 2]), &device);
+            B::float_mul(g.screen.clone(), half)
+        });
         for (node, grad) in [
-            (means, g.means),
-            (cov6, g.cov6),
-            (colors, g.colors),
-            (opacities, g.opacities),
+            (means, Some(g.means)),
+            (cov6, Some(g.cov6)),
+            (colors, Some(g.colors)),
+            (opacities, Some(g.opacities)),
+            (screen, screen_grad),
         ] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, grad);
-            }
+            let (Some(node), Some(grad)) = (node, grad) else {
+                continue;
+            };
+            grads.register::<B>(node.id, grad);
         }
     }
 }
@@ -464,6 +495,7 @@ fn inner_inputs<B: Backend, C: CheckpointStrategy>(
         cov6: i.cov6.into_primitive(),
         colors: i.colors.into_primitive(),
         opacities: i.opacities.into_primitive(),
+        screen: i.screen.into_primitive(),
     }
 }
 
@@ -474,6 +506,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             inputs.cov6.node(),
             inputs.colors.node(),
             inputs.opacities.node(),
+            inputs.screen.node(),
         ];
         match SplatBackward.prepare::<C>(nodes).compute_bound().stateful() {
             OpsKind::Tracked(prep) => {
@@ -523,6 +556,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             cov6: Self::from_inner(g.cov6),
             colors: Self::from_inner(g.colors),
             opacities: Self::from_inner(g.opacities),
+            screen: Self::from_inner(g.screen),
         }
     }
 }

@@ -265,8 +265,9 @@ pub fn forward(
 /// `grad_out` (`[H, W, 4]`: dL/dRGB and dL/dT) of its output. Uses float atomics when the
 /// device has them; see [`backward_with_options`].
 ///
-/// Returns the gradients for `[means [N, 3], cov6 [N, 6], colors [N, 3], opacities [N]]`.
-/// Culled Gaussians get zeros.
+/// Returns the gradients for `[means [N, 3], cov6 [N, 6], colors [N, 3], opacities [N]]`
+/// and the screen-space gradient `[N, GRAD2D_STRIDE]` (its columns: d/du, d/dv in pixels,
+/// then the conic's, the colour's and the opacity's). Culled Gaussians get zeros.
 #[allow(clippy::too_many_arguments)]
 pub fn backward(
     means: CubeTensor,
@@ -277,7 +278,7 @@ pub fn backward(
     background: [f32; 3],
     fwd: &GpuForward,
     grad_out: CubeTensor,
-) -> [CubeTensor; 4] {
+) -> [CubeTensor; 5] {
     backward_with_options(
         means,
         cov6,
@@ -306,7 +307,7 @@ pub fn backward_with_options(
     fwd: &GpuForward,
     grad_out: CubeTensor,
     options: GpuOptions,
-) -> [CubeTensor; 4] {
+) -> [CubeTensor; 5] {
     let ctx = Ctx::new(&means);
     let means = ctx.float_input(means);
     let cov6 = ctx.float_input(cov6);
@@ -327,6 +328,7 @@ pub fn backward_with_options(
             ctx.empty_tensor([0, 6]),
             ctx.empty_tensor([0, 3]),
             ctx.empty_tensor([0]),
+            ctx.empty_tensor([0, GRAD2D_STRIDE as usize]),
         ];
     }
     let cam = ctx.camera(camera, background);
@@ -433,6 +435,8 @@ pub fn backward_with_options(
         ctx.tensor(grad_cov6, [n, 6], DType::F32),
         ctx.tensor(grad_colors, [n, 3], DType::F32),
         ctx.tensor(grad_opacities, [n], DType::F32),
+        // The whole screen-space gradient; its first two columns are d/du, d/dv.
+        ctx.tensor(grad2d, [n, GRAD2D_STRIDE as usize], DType::F32),
     ]
 }
 

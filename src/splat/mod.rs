@@ -105,12 +105,29 @@ fn check(g: &Gaussians, params: &SplatParams) -> Result<()> {
 /// Renders with the fused tile rasterizer of the tensors' device (CPU for ndarray and flex,
 /// GPU kernels for wgpu), differentiable through its handwritten backward.
 pub fn render(g: &Gaussians, params: &SplatParams) -> Result<Rendered> {
+    let screen = Tensor::<2>::zeros([g.len(), 2], &g.means.device());
+    render_tapped(g, screen, params)
+}
+
+/// [`render`] with a gradient tap on the projected centres: `screen` (`[N, 2]`, zeros,
+/// tracked with `require_grad`) gets the loss's gradient w.r.t. each Gaussian's projected
+/// centre in normalised device coordinates, 3DGS's `viewspace_point_tensor.grad` that
+/// GaussianAvatars densifies by ([`SplatInputs`]). Culled Gaussians get zeros.
+pub fn render_tapped(g: &Gaussians, screen: Tensor<2>, params: &SplatParams) -> Result<Rendered> {
     check(g, params)?;
+    if screen.dims() != [g.len(), 2] {
+        return Err(Error::invalid(
+            "splat inputs",
+            "screen",
+            format!("expected shape [{}, 2], got {:?}", g.len(), screen.dims()),
+        ));
+    }
     let inputs = SplatInputs::<Dispatch> {
         means: g.means.clone().into_dispatch(),
         cov6: g.cov6.clone().into_dispatch(),
         colors: g.colors.clone().into_dispatch(),
         opacities: g.opacities.clone().into_dispatch(),
+        screen: screen.into_dispatch(),
     };
     let out = Tensor::<3>::from_dispatch(<Dispatch as SplatBackend>::splat(inputs, *params));
     Ok(Rendered::from_packed(out))
@@ -124,6 +141,26 @@ pub fn render_reference(g: &Gaussians, params: &SplatParams) -> Result<Rendered>
         g.cov6.clone(),
         g.colors.clone(),
         g.opacities.clone(),
+        params,
+    );
+    Ok(Rendered::from_packed(out))
+}
+
+/// [`render_reference`] with the tap of [`render_tapped`]: the projected centres move by
+/// `screen` (`[N, 2]`, normalised device coordinates), so its gradient is the oracle of the
+/// fused renderers' tap.
+pub fn render_reference_tapped(
+    g: &Gaussians,
+    screen: Tensor<2>,
+    params: &SplatParams,
+) -> Result<Rendered> {
+    check(g, params)?;
+    let out = reference::render_tapped(
+        g.means.clone(),
+        g.cov6.clone(),
+        g.colors.clone(),
+        g.opacities.clone(),
+        Some(screen),
         params,
     );
     Ok(Rendered::from_packed(out))

@@ -152,6 +152,21 @@ pub fn render(
     opacities: Tensor<1>,
     params: &SplatParams,
 ) -> Tensor<3> {
+    render_tapped(means, cov6, colors, opacities, None, params)
+}
+
+/// [`render`] with the projected centres moved by `screen` (`[N, 2]`, in normalised device
+/// coordinates: `u += x W / 2`, `v += y H / 2`, 3DGS's `ndc2Pix`). At `screen = 0` the image
+/// is [`render`]'s and the gradient w.r.t. `screen` is the one the fused renderers' tap
+/// reports ([`crate::splat::SplatInputs`]): the oracle of that tap.
+pub fn render_tapped(
+    means: Tensor<2>,
+    cov6: Tensor<2>,
+    colors: Tensor<2>,
+    opacities: Tensor<1>,
+    screen: Option<Tensor<2>>,
+    params: &SplatParams,
+) -> Tensor<3> {
     let device = means.device();
     let cam = ProjCamera::new(&params.camera);
     let (w, h) = (cam.width as usize, cam.height as usize);
@@ -177,9 +192,15 @@ pub fn render(
         cov6.select(0, sel.clone()),
         &cam,
     );
+    let (mut pu, mut pv) = (p.u, p.v);
+    if let Some(screen) = screen {
+        let s = screen.select(0, sel.clone());
+        pu = pu + col(&s, 0) * (0.5 * w as f32);
+        pv = pv + col(&s, 1) * (0.5 * h as f32);
+    }
     let colors = colors.select(0, sel.clone());
     let opac = opacities.select(0, sel).unsqueeze_dim::<2>(0);
-    let (u, v) = (p.u.unsqueeze_dim::<2>(0), p.v.unsqueeze_dim::<2>(0));
+    let (u, v) = (pu.unsqueeze_dim::<2>(0), pv.unsqueeze_dim::<2>(0));
     let (a, b, c) = (
         p.a.unsqueeze_dim::<2>(0),
         p.b.unsqueeze_dim::<2>(0),

@@ -184,6 +184,8 @@ pub struct Outcome {
     pub grad_cov6: Vec<f32>,
     pub grad_colors: Vec<f32>,
     pub grad_opacities: Vec<f32>,
+    /// The tap's gradient (`[N, 2]`, NDC); empty when the source has none (fixtures).
+    pub grad_screen: Vec<f32>,
 }
 
 fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -195,12 +197,16 @@ fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
 pub fn run(
     scene: &Scene,
     device: &Device,
-    render: impl Fn(&Gaussians, &SplatParams) -> Rendered,
+    render: impl Fn(&Gaussians, Tensor<2>, &SplatParams) -> Rendered,
     t_weights: Option<&[f32]>,
 ) -> Outcome {
     let (w, h) = scene.size();
     let g = scene.gaussians(device);
-    let r = render(&g, &scene.params);
+    let mut screen = Tensor::<2>::zeros([scene.len(), 2], device);
+    if device.is_autodiff() {
+        screen = screen.require_grad();
+    }
+    let r = render(&g, screen.clone(), &scene.params);
     let gw = Tensor::<3>::from_data(
         TensorData::new(scene.grad_weights.clone(), [h, w, 3]),
         device,
@@ -225,6 +231,7 @@ pub fn run(
             .grad(&grads)
             .map(host)
             .unwrap_or_else(|| vec![0.0; n]),
+        grad_screen: grad(&screen, 2 * n),
     }
 }
 
@@ -239,7 +246,7 @@ pub fn fused(scene: &Scene, device: &Device) -> Outcome {
     run(
         scene,
         device,
-        |g, p| texavatars::splat::render(g, p).expect("valid inputs"),
+        |g, s, p| texavatars::splat::render_tapped(g, s, p).expect("valid inputs"),
         None,
     )
 }
@@ -249,7 +256,7 @@ pub fn reference(scene: &Scene, device: &Device) -> Outcome {
     run(
         scene,
         device,
-        |g, p| texavatars::splat::render_reference(g, p).expect("valid inputs"),
+        |g, s, p| texavatars::splat::render_reference_tapped(g, s, p).expect("valid inputs"),
         None,
     )
 }
@@ -309,7 +316,11 @@ pub fn assert_close(
         ("cov6", &got.grad_cov6, &want.grad_cov6),
         ("colors", &got.grad_colors, &want.grad_colors),
         ("opacities", &got.grad_opacities, &want.grad_opacities),
+        ("screen", &got.grad_screen, &want.grad_screen),
     ] {
+        if name == "screen" && w.is_empty() {
+            continue;
+        }
         assert!(
             g.iter().all(|v| v.is_finite()),
             "{label}: non-finite grad {name}"
@@ -334,6 +345,7 @@ impl Expected {
             grad_cov6: self.grad_cov6.clone(),
             grad_colors: self.grad_colors.clone(),
             grad_opacities: self.grad_opacities.clone(),
+            grad_screen: Vec::new(),
         }
     }
 }

@@ -73,13 +73,15 @@ pub struct Bins {
     pub tile_ranges: Vec<[u32; 2]>,
 }
 
-/// Gradients of the four inputs.
+/// Gradients of the four inputs, and `screen` `[N, 2]`: of each projected centre (u, v) in
+/// pixels.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Grads {
     pub means: Vec<f32>,
     pub cov6: Vec<f32>,
     pub colors: Vec<f32>,
     pub opacities: Vec<f32>,
+    pub screen: Vec<f32>,
 }
 
 /// Projects every Gaussian (in parallel).
@@ -526,6 +528,7 @@ pub fn backward(
         cov6: vec![0.0; 6 * n],
         colors: vec![0.0; 3 * n],
         opacities: vec![0.0; n],
+        screen: vec![0.0; 2 * n],
     };
     grads
         .means
@@ -533,13 +536,15 @@ pub fn backward(
         .zip(grads.cov6.par_chunks_mut(6))
         .zip(grads.colors.par_chunks_mut(3))
         .zip(grads.opacities.par_iter_mut())
+        .zip(grads.screen.par_chunks_mut(2))
         .enumerate()
         .with_min_len(1024)
-        .for_each(|(i, (((gm, gcov), gcol), gop))| {
+        .for_each(|(i, ((((gm, gcov), gcol), gop), gscreen))| {
             if fwd.projections[i].is_none() {
                 return;
             }
             let g2 = &per_gaussian[i];
+            gscreen.copy_from_slice(&[g2.u, g2.v]);
             let (dm, dc) = project::project_backward(
                 &cam,
                 &scene.means[3 * i..3 * i + 3],
