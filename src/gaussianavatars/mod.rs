@@ -11,6 +11,7 @@
 
 pub mod binding;
 pub mod constants;
+pub mod density;
 pub mod folder;
 pub mod losses;
 pub mod model;
