@@ -6,16 +6,32 @@ use clap::Args;
 
 use crate::device::BackendKind;
 use crate::head::HeadAsset;
+use crate::gaussianavatars::train::GaTrainConfig;
 use crate::train::{self, TrainConfig, TrainOptions};
+
+/// The avatar models `train` can train.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum ModelKind {
+    /// TexAvatars: decoders in UV space, the texel lift (configs/train_cpu.json).
+    #[default]
+    Texavatars,
+    /// GaussianAvatars: Gaussians bound to the mesh's triangles, adaptive density control
+    /// (configs/train_gaussianavatars.json).
+    Gaussianavatars,
+}
 
 /// Arguments of `train`.
 #[derive(Debug, Args)]
 pub struct TrainArgs {
+    /// The model to train; its config format follows (see `--config`).
+    #[arg(long, value_enum, default_value_t = ModelKind::Texavatars)]
+    pub model: ModelKind,
     /// The export's split folder with `transforms_{train,val}.json` (`OUT/union` of
     /// `texavatars synth`).
     #[arg(long)]
     pub data: PathBuf,
-    /// Training config (see configs/train_cpu.json).
+    /// Training config (configs/train_cpu.json for TexAvatars,
+    /// configs/train_gaussianavatars.json for GaussianAvatars).
     #[arg(long)]
     pub config: PathBuf,
     /// Output folder: checkpoints, metric logs, the trained avatar.
@@ -44,8 +60,18 @@ pub struct TrainArgs {
 
 /// Runs `train`.
 pub fn run(a: TrainArgs) -> anyhow::Result<()> {
-    let config = TrainConfig::load(&a.config)?;
-    let backend = a.backend.unwrap_or(config.backend);
+    let (config, backend) = match a.model {
+        ModelKind::Texavatars => {
+            let c = TrainConfig::load(&a.config)?;
+            let b = a.backend.unwrap_or(c.backend);
+            (Ok(c), b)
+        }
+        ModelKind::Gaussianavatars => {
+            let c = GaTrainConfig::load(&a.config)?;
+            let b = a.backend.unwrap_or(c.backend);
+            (Err(c), b)
+        }
+    };
     // burn 0.22 restores a checkpoint's optimiser state on `Device::default()`
     // (`ModuleOptimizer::load_record`), which is wgpu whenever that backend is compiled in: a
     // resumed CPU run would start the Vulkan driver only to move the state off it on the first
@@ -72,6 +98,25 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     options.head = match &a.head {
         Some(p) => Some(HeadAsset::load(p, None)?),
         None => None,
+    };
+    let config = match config {
+        Ok(c) => c,
+        Err(ga) => {
+            let r = crate::gaussianavatars::train::train(&ga, &options)?;
+            println!(
+                "trained GaussianAvatars iterations {}..{} in {:.1} s ({} Gaussians); {}",
+                r.start_iteration,
+                r.end_iteration,
+                r.seconds,
+                r.gaussians,
+                if r.complete {
+                    format!("written to {}", r.output.display())
+                } else {
+                    "stopped with a checkpoint (no point cloud yet)".into()
+                }
+            );
+            return Ok(());
+        }
     };
     let r = train::train(&config, &options)?;
     println!(

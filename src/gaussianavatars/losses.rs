@@ -22,7 +22,9 @@ fn visible_mean(v: Tensor<1>, visible: Tensor<1>) -> Tensor<1> {
 /// - `xyz`: [N, 3]; `visible`: `[N]` (0 or 1); returns `[1]`
 pub fn position_loss(xyz: Tensor<2>, visible: Tensor<1>) -> Tensor<1> {
     let n = xyz.dims()[0];
-    let norm = xyz.powi_scalar(2).sum_dim(1).sqrt().reshape([n]);
+    // The epsilon keeps the gradient finite at mu_l = 0 (GaussianAvatars' initialisation),
+    // where torch's `norm` takes the subgradient 0.
+    let norm = (xyz.powi_scalar(2).sum_dim(1) + 1e-30).sqrt().reshape([n]);
     visible_mean(relu(norm - THRESHOLD_XYZ), visible) * LAMBDA_XYZ
 }
 

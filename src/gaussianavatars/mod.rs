@@ -15,6 +15,7 @@ pub mod density;
 pub mod folder;
 pub mod losses;
 pub mod model;
+pub mod train;
 
 pub use binding::{FaceFrame, face_frames, to_world};
 pub use folder::GaAvatar;

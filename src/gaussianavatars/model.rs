@@ -9,7 +9,7 @@
 //! covariance of `get_rotation = R * q` and `get_scaling = k exp(s)`. The host twin,
 //! [`super::binding::to_world`], is what the tests compare it with.
 
-use burn::module::{Module, Param};
+use burn::module::{Module, Param, ParamId};
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
@@ -31,16 +31,20 @@ use crate::texel::FrameKind;
 pub struct GaModel {
     /// `[N, 3]` positions local to the triangle.
     pub xyz: Param<Tensor<2>>,
-    /// `[N, K, 3]` SH coefficients, `K = (sh_degree + 1)^2`, the DC term first.
-    pub features: Param<Tensor<3>>,
+    /// `[N, 1, 3]` the DC SH coefficient (`_features_dc`).
+    pub features_dc: Param<Tensor<3>>,
+    /// `[N, K - 1, 3]` the higher bands, `K = (sh_degree + 1)^2` (`_features_rest`; trained
+    /// at a twentieth of the DC's rate); `None` at degree 0.
+    pub features_rest: Option<Param<Tensor<3>>>,
     /// `[N]` opacity logits.
     pub opacity: Param<Tensor<1>>,
     /// `[N, 3]` log scales (before the triangle's `k`).
     pub scaling: Param<Tensor<2>>,
     /// `[N, 4]` quaternions (w, x, y, z), normalised when used.
     pub rotation: Param<Tensor<2>>,
-    /// `[N]` each Gaussian's triangle.
-    pub binding: Tensor<1, Int>,
+    /// `[N]` each Gaussian's triangle (a parameter only so that checkpoints keep it; never
+    /// trained).
+    pub binding: Param<Tensor<1, Int>>,
     /// SH degree (0..=3).
     pub sh_degree: usize,
 }
@@ -54,22 +58,21 @@ impl GaModel {
         let t = |v: &[f32], w: usize| {
             Tensor::<2>::from_data(TensorData::new(v.to_vec(), [n, w]), device)
         };
+        let sh = Tensor::<3>::from_data(TensorData::new(g.sh.clone(), [n, k, 3]), device);
         Ok(Self {
             xyz: Param::from_tensor(t(&g.means, 3)),
-            features: Param::from_tensor(Tensor::from_data(
-                TensorData::new(g.sh.clone(), [n, k, 3]),
-                device,
-            )),
+            features_dc: Param::from_tensor(sh.clone().narrow(1, 0, 1)),
+            features_rest: (k > 1).then(|| Param::from_tensor(sh.narrow(1, 1, k - 1))),
             opacity: Param::from_tensor(Tensor::from_data(
                 TensorData::new(g.opacity_logits.clone(), [n]),
                 device,
             )),
             scaling: Param::from_tensor(t(&g.log_scales, 3)),
             rotation: Param::from_tensor(t(&g.quats, 4)),
-            binding: Tensor::from_data(
+            binding: Param::initialized(ParamId::new(), Tensor::<1, Int>::from_data(
                 TensorData::new(binding.iter().map(|&f| f as i32).collect::<Vec<_>>(), [n]),
                 device,
-            ),
+            )),
             sh_degree: g.sh_degree,
         })
     }
@@ -105,7 +108,7 @@ impl GaModel {
         let host = |t: Tensor<2>| -> Vec<f32> { t.into_data().iter::<f32>().collect() };
         let stored = PlyGaussians {
             means: host(self.xyz.val()),
-            sh: self.features.val().into_data().iter::<f32>().collect(),
+            sh: self.features().into_data().iter::<f32>().collect(),
             sh_degree: self.sh_degree,
             opacity_logits: self.opacity.val().into_data().iter::<f32>().collect(),
             log_scales: host(self.scaling.val()),
@@ -113,7 +116,7 @@ impl GaModel {
         };
         let binding = self
             .binding
-            .clone()
+            .val()
             .into_data()
             .iter::<i64>()
             .map(|f| f as u32)
@@ -121,9 +124,17 @@ impl GaModel {
         (stored, binding)
     }
 
+    /// `[N, K, 3]` every SH coefficient, the DC term first.
+    pub fn features(&self) -> Tensor<3> {
+        match &self.features_rest {
+            Some(rest) => Tensor::cat(vec![self.features_dc.val(), rest.val()], 1),
+            None => self.features_dc.val(),
+        }
+    }
+
     /// Number of Gaussians.
     pub fn len(&self) -> usize {
-        self.binding.dims()[0]
+        self.binding.val().dims()[0]
     }
 
     /// True when there are none.
@@ -141,6 +152,20 @@ impl GaModel {
         vertices: Tensor<2>,
         camera_position: [f32; 3],
     ) -> Gaussians {
+        self.gaussians_at_degree(faces, vertices, camera_position, self.sh_degree)
+    }
+
+    /// [`GaModel::gaussians`] with colours from the SH bands up to `degree` only
+    /// (GaussianAvatars' `active_sh_degree`, raised during training by `oneupSHdegree`);
+    /// at most the stored degree.
+    pub fn gaussians_at_degree(
+        &self,
+        faces: &[[u32; 3]],
+        vertices: Tensor<2>,
+        camera_position: [f32; 3],
+        degree: usize,
+    ) -> Gaussians {
+        let degree = degree.min(self.sh_degree);
         let n = self.len();
         let device = vertices.device();
         let corner = |c: usize| {
@@ -154,9 +179,9 @@ impl GaModel {
         let f = faces.len();
         let frames = face_frames(FrameKind::ScaledRotation, faces, &vertices)
             .reshape([f, 9])
-            .select(0, self.binding.clone())
+            .select(0, self.binding.val())
             .reshape([n, 3, 3]);
-        let anchors = centroids.select(0, self.binding.clone());
+        let anchors = centroids.select(0, self.binding.val());
         // The lift's local layout; its colour channels are unused here (SH below).
         let mut parts: Vec<Tensor<2>> = Vec::with_capacity(5);
         let mut at = 0;
@@ -173,9 +198,10 @@ impl GaModel {
         parts.push(Tensor::zeros([n, rest], &device));
         let packed = lift_rows(Tensor::cat(parts, 1), frames, anchors);
         let means = packed.clone().narrow(1, OUT_MEAN, 3);
+        let coeffs = (degree + 1) * (degree + 1);
         let colors = sh::colors(
-            self.features.val(),
-            self.sh_degree,
+            self.features().narrow(1, 0, coeffs),
+            degree,
             means.clone(),
             camera_position,
         );

@@ -238,6 +238,372 @@ pub fn optimizer(config: &TrainConfig) -> ModuleOptimizer {
         .init()
 }
 
+/// The training frames of `options.data` and, when `val_frames > 0` and the export has
+/// one, its validation split, each frame's files checked before anything is written or
+/// removed (issue 15.5).
+pub fn open_frames(
+    options: &TrainOptions,
+    model: Arc<crate::head::HeadModel>,
+    val_frames: usize,
+) -> Result<(Arc<HeadDataset>, Option<Arc<HeadDataset>>)> {
+    let checking = Instant::now();
+    let train_set = Arc::new(HeadDataset::open_with(
+        &options.data,
+        Split::Train,
+        model.clone(),
+        options.paths,
+    )?);
+    if train_set.is_empty() {
+        return Err(Error::invalid(
+            train_set.transforms_path().display().to_string(),
+            "frames",
+            "the training split has no frames",
+        ));
+    }
+    let checked = train_set.check_files()?;
+    let val_file = options.data.join(Split::Val.file_name());
+    let val_set = if val_frames > 0 && val_file.is_file() {
+        let v = HeadDataset::open_with(&options.data, Split::Val, model, options.paths)?;
+        v.check_files()?;
+        Some(Arc::new(v))
+    } else {
+        if val_frames > 0 {
+            eprintln!("train: no {}: no validation", val_file.display());
+        }
+        None
+    };
+    eprintln!(
+        "train: checked {} frames and {} timesteps{} in {:.1} s",
+        checked.frames,
+        checked.timesteps,
+        match &val_set {
+            Some(v) => format!(" (and {} validation frames)", v.len()),
+            None => String::new(),
+        },
+        checking.elapsed().as_secs_f64()
+    );
+    Ok((train_set, val_set))
+}
+
+/// A run's output folder, locked and made ready by [`prepare_folder`].
+pub struct RunFolder {
+    /// Held for the run's whole life ([`lock`]).
+    pub lock: lock::RunLock,
+    /// `OUT/checkpoint`.
+    pub ckpt_dir: PathBuf,
+    /// The checkpoint (1-based burn epoch) a resumed run starts from.
+    pub checkpoint: Option<usize>,
+    /// The checkpoint and the global iteration it holds, when it was taken in the middle of
+    /// an interval ([`IterationRecord`]).
+    pub resume_at: Option<(usize, usize)>,
+}
+
+/// Locks `options.out` (one run per folder), removes scratch files of killed writes, and
+/// either finds the checkpoint to resume from (after `check_saved` has compared the saved
+/// config with this run's) or refuses a folder that holds a run unless `--force`, which
+/// removes the `owned` files first. `finished` is the file a complete run writes.
+pub fn prepare_folder(
+    options: &TrainOptions,
+    owned: &[&str],
+    finished: &str,
+    check_saved: impl FnOnce() -> Result<()>,
+) -> Result<RunFolder> {
+    let out = &options.out;
+    let ckpt_dir = out.join(files::CHECKPOINTS);
+    let lock = lock::RunLock::acquire(out)?;
+    for dir in [out.clone(), ckpt_dir.clone()] {
+        let n = remove_stale_tmp(&dir)?;
+        if n > 0 {
+            eprintln!(
+                "train: removed {n} unfinished temporary file(s) in {}",
+                dir.display()
+            );
+        }
+    }
+    let checkpoint = if options.resume {
+        check_saved()?;
+        let c = latest_checkpoint(&ckpt_dir);
+        if c.is_none() {
+            eprintln!(
+                "train: --resume: no complete checkpoint in {}; starting from iteration 0",
+                ckpt_dir.display()
+            );
+        }
+        c
+    } else {
+        let done = out.join(finished).exists();
+        if latest_checkpoint(&ckpt_dir).is_some() || done {
+            if !options.force {
+                return Err(Error::invalid(
+                    out.display().to_string(),
+                    if done { finished } else { "checkpoint" },
+                    "already holds a training run; pass --resume to continue it, --force to \
+                     replace it, or choose another --out",
+                ));
+            }
+            for name in owned {
+                let p = out.join(name);
+                let r = if p.is_dir() {
+                    std::fs::remove_dir_all(&p)
+                } else if p.exists() {
+                    std::fs::remove_file(&p)
+                } else {
+                    Ok(())
+                };
+                r.map_err(|e| Error::io(&p, e))?;
+            }
+            eprintln!(
+                "train: --force: removed the earlier run in {}",
+                out.display()
+            );
+        }
+        None
+    };
+    // Records of checkpoints that were never written; the newest's, when it was taken in the
+    // middle of an interval (a stopped run).
+    IterationRecord::remove_after(&ckpt_dir, checkpoint.unwrap_or(0))?;
+    let resume_at = match checkpoint {
+        Some(c) => IterationRecord::load(&ckpt_dir, c)?.map(|r| (c, r.iteration)),
+        None => None,
+    };
+    Ok(RunFolder {
+        lock,
+        ckpt_dir,
+        checkpoint,
+        resume_at,
+    })
+}
+
+/// The part of a run burn's learner drives, for any model whose steps take [`TrainBatch`]es
+/// and report [`StepOutput`]s.
+pub struct Launch {
+    /// The run's iterations and checkpoint intervals.
+    pub schedule: Schedule,
+    /// The checkpoint a resumed run starts from ([`RunFolder::checkpoint`]).
+    pub checkpoint: Option<usize>,
+    /// Iterations between progress lines.
+    pub log_every: usize,
+    /// Validation frames per checkpoint.
+    pub val_frames: usize,
+    /// Stops the run ([`StopControl`]).
+    pub stop: StopControl,
+}
+
+/// What [`Launch::run`] hands back: the learner's result, the process's first and last
+/// iterations and its wall time.
+pub struct Launched<M> {
+    pub result: burn::train::LearningResult<M>,
+    pub start_iteration: usize,
+    pub end_iteration: usize,
+    pub seconds: f64,
+    /// Signal handlers, released when the run's report is done.
+    pub signals: Option<signals::SignalGuard>,
+}
+
+impl Launch {
+    /// The first burn epoch this process trains, its first iteration, the number of epochs
+    /// and the last iteration.
+    fn epochs(&self) -> (usize, usize, usize, usize) {
+        let start_epoch = self.checkpoint.unwrap_or(0);
+        let start_iteration = self.schedule.iterations_of(start_epoch).start;
+        // A run stopped in its last interval has its remaining iterations in one more epoch.
+        let epochs = self
+            .schedule
+            .epochs()
+            .max(start_epoch + usize::from(start_iteration < self.schedule.total));
+        let end_iteration = self.schedule.iterations_of(epochs.saturating_sub(1)).end;
+        (start_epoch, start_iteration, epochs, end_iteration)
+    }
+
+    /// The first iteration this process trains.
+    pub fn start_iteration(&self) -> usize {
+        self.epochs().1
+    }
+
+    /// Runs burn's learner on `training` with its loaders (the objective's terms as burn
+    /// metrics, checkpoints every interval, progress lines), after `announce` has printed the
+    /// run's first line with the iterations it will train.
+    pub fn run<M>(
+        &self,
+        options: &TrainOptions,
+        training: M,
+        optim: ModuleOptimizer,
+        lr: ModuleLrScheduler,
+        sets: (Arc<HeadDataset>, Option<Arc<HeadDataset>>),
+        device: &burn::tensor::Device,
+        announce: impl FnOnce(usize, usize),
+    ) -> Result<Launched<M>>
+    where
+        M: burn::train::LearnerModel
+            + burn::train::TrainStep<Input = TrainBatch, Output = StepOutput>
+            + burn::train::InferenceStep<Input = TrainBatch, Output = StepOutput>,
+    {
+        let (start_epoch, start_iteration, epochs, end_iteration) = self.epochs();
+        let stop = &self.stop;
+        let ckpt_dir = options.out.join(files::CHECKPOINTS);
+        if let Some(n) = options.stop_after {
+            stop.stop_before(start_iteration + n);
+        }
+        let signals = if options.handle_signals {
+            Some(signals::SignalGuard::install(stop)?)
+        } else {
+            None
+        };
+        announce(start_iteration, end_iteration);
+        let (train_set, val_set) = sets;
+        // Validation: the held-out camera's frames when the export has them.
+        let valid_loader = if let Some(val_set) = val_set {
+            let val_indices = FrameLoader::spread(val_set.len(), self.val_frames);
+            FrameLoader::fixed(val_set, val_indices, &device.clone().inner())
+                .with_stop(stop.clone(), None)
+        } else {
+            FrameLoader::fixed(train_set.clone(), Vec::new(), &device.clone().inner())
+        };
+        let train_loader =
+            FrameLoader::training(train_set, self.schedule.clone(), start_epoch, device)
+                .with_stop(stop.clone(), Some(ckpt_dir));
+        let mut builder =
+            SupervisedTraining::new(&options.out, Arc::new(train_loader), Arc::new(valid_loader))
+                .metrics((
+                    TermMetric::new(Term::Loss),
+                    TermMetric::new(Term::L1),
+                    TermMetric::new(Term::DSsim),
+                    TermMetric::new(Term::Vgg),
+                ))
+                .metrics((
+                    TermMetric::new(Term::Position),
+                    TermMetric::new(Term::Scale),
+                    TermMetric::new(Term::Psnr),
+                ))
+                .with_default_checkpointers()
+                .with_checkpointing_strategy(KeepLastNCheckpoints::new(KEEP_CHECKPOINTS))
+                .renderer(Box::new(
+                    ProgressPrinter::new(self.schedule.clone(), self.log_every)
+                        .with_stop(stop.clone()),
+                ))
+                .with_interrupter(stop.interrupter.clone())
+                .num_epochs(epochs);
+        if !options.app_log {
+            builder = builder.with_application_logger(None);
+        }
+        if let Some(c) = self.checkpoint {
+            builder = builder.checkpoint(c);
+        }
+        let learner = Learner::new(training, optim, lr);
+        let t0 = Instant::now();
+        let result = builder.launch(learner);
+        Ok(Launched {
+            result,
+            start_iteration,
+            end_iteration,
+            seconds: t0.elapsed().as_secs_f64(),
+            signals,
+        })
+    }
+
+    /// After the learner: a non-finite value, a data error or burn's own error become the
+    /// run's error (naming the checkpoint to resume from); else the iteration reached and
+    /// whether the run is complete.
+    pub fn outcome(
+        &self,
+        options: &TrainOptions,
+        error: Option<String>,
+        end_iteration: usize,
+    ) -> Result<(usize, bool)> {
+        let stop = &self.stop;
+        let schedule = &self.schedule;
+        let out = &options.out;
+        let ckpt_dir = out.join(files::CHECKPOINTS);
+        remove_stale_tmp(&ckpt_dir)?;
+        let resume_hint = resume_hint(options);
+        if let Some(fault) = stop.take_fault() {
+            let values: Vec<String> = fault
+                .values
+                .iter()
+                .map(|(n, v)| format!("{n} {v:.6}"))
+                .collect();
+            let kept = match latest_checkpoint(&ckpt_dir) {
+                Some(c) => format!(
+                    "the last good checkpoint is {c} (iteration {}); lower the learning rates and {resume_hint}",
+                    checkpoint_iteration(schedule, &ckpt_dir, c)
+                ),
+                None => "no checkpoint was written yet".into(),
+            };
+            return Err(Error::invalid(
+                "training",
+                format!("iteration {}", fault.iteration),
+                format!(
+                    "not finite: {} ({}); stopped without saving this state: {kept}",
+                    fault.culprits().join(", "),
+                    values.join(", ")
+                ),
+            ));
+        }
+        if let Some((iteration, e)) = stop.take_data_error() {
+            let kept = match latest_checkpoint(&ckpt_dir) {
+                Some(c) => format!(
+                    "checkpoint {c} in {} holds iterations 0..{}; fix the file and {resume_hint}",
+                    ckpt_dir.display(),
+                    checkpoint_iteration(schedule, &ckpt_dir, c)
+                ),
+                None => "no checkpoint was written yet; fix the file and start again".into(),
+            };
+            return Err(Error::invalid(
+                "training",
+                format!("iteration {iteration}"),
+                format!("a frame could not be read: {e}; {kept}"),
+            ));
+        }
+        if let Some(e) = error {
+            return Err(Error::invalid(
+                out.display().to_string(),
+                "training",
+                format!("stopped by an error: {e}"),
+            ));
+        }
+        let reached = stop
+            .stopped_at()
+            .unwrap_or(end_iteration)
+            .min(end_iteration);
+        Ok((reached, reached == schedule.total))
+    }
+
+    /// An incomplete run's message (where its work is, how to resume): the run's error when
+    /// a signal stopped it, else printed.
+    pub fn stopped(&self, options: &TrainOptions, reached: usize) -> Result<()> {
+        let ckpt_dir = options.out.join(files::CHECKPOINTS);
+        let saved = match latest_checkpoint(&ckpt_dir) {
+            Some(c) => format!(
+                "checkpoint {c} in {} holds iterations 0..{}",
+                ckpt_dir.display(),
+                checkpoint_iteration(&self.schedule, &ckpt_dir, c)
+            ),
+            None => "no checkpoint was written".into(),
+        };
+        let message = format!(
+            "train: stopped at iteration {reached} of {}; {saved}; {}",
+            self.schedule.total,
+            resume_hint(options)
+        );
+        if let Some(signal) = self.stop.signal() {
+            return Err(Error::Stopped {
+                signal,
+                message: format!("{} ({message})", signals::name(signal)),
+            });
+        }
+        eprintln!("{message}");
+        Ok(())
+    }
+}
+
+fn resume_hint(options: &TrainOptions) -> String {
+    format!(
+        "resume with `texavatars train --data {} --config CONFIG --out {} --resume`",
+        options.data.display(),
+        options.out.display()
+    )
+}
+
 /// Trains the avatar of `config` on `options.data` (see the module documentation), writes
 /// `out/avatar.bpk` and returns the trained avatar.
 ///
@@ -264,113 +630,21 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     }
     let avatar_config: AvatarConfig = config.avatar()?;
 
-    // Every frame's files, before anything is written or removed (issue 15.5).
     let model = Arc::new(head.model.clone());
-    let checking = Instant::now();
-    let train_set = Arc::new(HeadDataset::open_with(
-        &options.data,
-        Split::Train,
-        model.clone(),
-        options.paths,
-    )?);
-    if train_set.is_empty() {
-        return Err(Error::invalid(
-            train_set.transforms_path().display().to_string(),
-            "frames",
-            "the training split has no frames",
-        ));
-    }
-    let checked = train_set.check_files()?;
-    let val_file = options.data.join(Split::Val.file_name());
-    let val_set = if config.val_frames > 0 && val_file.is_file() {
-        let v = HeadDataset::open_with(&options.data, Split::Val, model.clone(), options.paths)?;
-        v.check_files()?;
-        Some(Arc::new(v))
-    } else {
-        None
-    };
-    eprintln!(
-        "train: checked {} frames and {} timesteps{} in {:.1} s",
-        checked.frames,
-        checked.timesteps,
-        match &val_set {
-            Some(v) => format!(" (and {} validation frames)", v.len()),
-            None => String::new(),
-        },
-        checking.elapsed().as_secs_f64()
-    );
+    let (train_set, val_set) = open_frames(options, model, config.val_frames)?;
 
     let out = &options.out;
-    let ckpt_dir = out.join(files::CHECKPOINTS);
-    // One run per folder at a time, for the run's whole life (crate::train::lock).
-    let _lock = lock::RunLock::acquire(out)?;
-
-    // Scratch files of writes a killed run never finished.
-    for dir in [out.clone(), ckpt_dir.clone()] {
-        let n = remove_stale_tmp(&dir)?;
-        if n > 0 {
-            eprintln!(
-                "train: removed {n} unfinished temporary file(s) in {}",
-                dir.display()
-            );
-        }
-    }
-
-    // Resume: the saved config must describe the same run.
-    let checkpoint = if options.resume {
+    let folder = prepare_folder(options, &OWNED, files::AVATAR, || {
         let saved = TrainConfig::load(&out.join(files::CONFIG))?;
-        if let Err(field) = saved.resumable_as(&config) {
-            return Err(Error::invalid(
+        saved.resumable_as(&config).map_err(|field| {
+            Error::invalid(
                 out.join(files::CONFIG).display().to_string(),
                 field,
                 "differs from the given config; a resumed run must train the same avatar with \
                  the same schedule (only iterations, val_frames, log_every and backend may change)",
-            ));
-        }
-        let c = latest_checkpoint(&ckpt_dir);
-        if c.is_none() {
-            eprintln!(
-                "train: --resume: no complete checkpoint in {}; starting from iteration 0",
-                ckpt_dir.display()
-            );
-        }
-        c
-    } else {
-        let finished = out.join(files::AVATAR).exists();
-        if latest_checkpoint(&ckpt_dir).is_some() || finished {
-            if !options.force {
-                return Err(Error::invalid(
-                    out.display().to_string(),
-                    if finished { "avatar.bpk" } else { "checkpoint" },
-                    "already holds a training run; pass --resume to continue it, --force to \
-                     replace it, or choose another --out",
-                ));
-            }
-            for name in OWNED {
-                let p = out.join(name);
-                let r = if p.is_dir() {
-                    std::fs::remove_dir_all(&p)
-                } else if p.exists() {
-                    std::fs::remove_file(&p)
-                } else {
-                    Ok(())
-                };
-                r.map_err(|e| Error::io(&p, e))?;
-            }
-            eprintln!(
-                "train: --force: removed the earlier run in {}",
-                out.display()
-            );
-        }
-        None
-    };
-    // Records of checkpoints that were never written; the newest's, when it was taken in the
-    // middle of an interval (a stopped run).
-    IterationRecord::remove_after(&ckpt_dir, checkpoint.unwrap_or(0))?;
-    let resume_at = match checkpoint {
-        Some(c) => IterationRecord::load(&ckpt_dir, c)?.map(|r| (c, r.iteration)),
-        None => None,
-    };
+            )
+        })
+    })?;
 
     let backend = options.backend.unwrap_or(config.backend);
     let device = backend.autodiff_device();
@@ -427,174 +701,59 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         &(serde_json::to_string_pretty(&avatar_config).expect("serialises") + "\n"),
     )?;
 
-    let schedule = Schedule {
-        seed: config.seed,
-        per_epoch: config.checkpoint_every,
-        total: config.iterations,
-        batch_size: config.batch_size,
-        resume: resume_at,
+    let launch = Launch {
+        schedule: Schedule {
+            seed: config.seed,
+            per_epoch: config.checkpoint_every,
+            total: config.iterations,
+            batch_size: config.batch_size,
+            resume: folder.resume_at,
+        },
+        checkpoint: folder.checkpoint,
+        log_every: config.log_every,
+        val_frames: config.val_frames,
+        stop,
     };
-    let start_epoch = checkpoint.unwrap_or(0);
-    let start_iteration = schedule.iterations_of(start_epoch).start;
-    // A run stopped in its last interval has its remaining iterations in one more epoch.
-    let epochs = schedule
-        .epochs()
-        .max(start_epoch + usize::from(start_iteration < schedule.total));
-    let end_iteration = schedule.iterations_of(epochs.saturating_sub(1)).end;
-    if let Some(n) = options.stop_after {
-        stop.stop_before(start_iteration + n);
-    }
-    let _signals = if options.handle_signals {
-        Some(signals::SignalGuard::install(&stop)?)
-    } else {
-        None
-    };
-    eprintln!(
-        "train: {} frames, {} Gaussians (R = S = {}), {} backend, iterations {start_iteration}..{end_iteration} of {}, VGG from iteration {}",
-        train_set.len(),
-        gaussians,
-        avatar_config.net.uv_res,
-        format!("{backend:?}").to_lowercase(),
-        schedule.total,
-        if config.ablations.vgg {
-            config.vgg_from().to_string()
-        } else {
-            "never".into()
-        }
-    );
-
-    // Validation: the held-out camera's frames when the export has them.
-    let valid_loader = if let Some(val_set) = val_set {
-        let val_indices = FrameLoader::spread(val_set.len(), config.val_frames);
-        FrameLoader::fixed(val_set, val_indices, &device.clone().inner())
-            .with_stop(stop.clone(), None)
-    } else {
-        if config.val_frames > 0 {
-            eprintln!("train: no {}: no validation", val_file.display());
-        }
-        FrameLoader::fixed(train_set.clone(), Vec::new(), &device.clone().inner())
-    };
-    let train_loader = FrameLoader::training(train_set, schedule.clone(), start_epoch, &device)
-        .with_stop(stop.clone(), Some(ckpt_dir.clone()));
-
-    let mut builder = SupervisedTraining::new(out, Arc::new(train_loader), Arc::new(valid_loader))
-        .metrics((
-            TermMetric::new(Term::Loss),
-            TermMetric::new(Term::L1),
-            TermMetric::new(Term::DSsim),
-            TermMetric::new(Term::Vgg),
-        ))
-        .metrics((
-            TermMetric::new(Term::Position),
-            TermMetric::new(Term::Scale),
-            TermMetric::new(Term::Psnr),
-        ))
-        .with_default_checkpointers()
-        .with_checkpointing_strategy(KeepLastNCheckpoints::new(KEEP_CHECKPOINTS))
-        .renderer(Box::new(
-            ProgressPrinter::new(schedule.clone(), config.log_every).with_stop(stop.clone()),
-        ))
-        .with_interrupter(stop.interrupter.clone())
-        .num_epochs(epochs);
-    if !options.app_log {
-        builder = builder.with_application_logger(None);
-    }
-    if let Some(c) = checkpoint {
-        builder = builder.checkpoint(c);
-    }
-    let learner = Learner::new(training, optimizer(&config), lr_scheduler(&config));
-    let t0 = Instant::now();
-    let result = builder.launch(learner);
-    let seconds = t0.elapsed().as_secs_f64();
-    remove_stale_tmp(&ckpt_dir)?;
-    let resume_hint = format!(
-        "resume with `texavatars train --data {} --config CONFIG --out {} --resume`",
-        options.data.display(),
-        out.display()
-    );
-    if let Some(fault) = stop.take_fault() {
-        let values: Vec<String> = fault
-            .values
-            .iter()
-            .map(|(n, v)| format!("{n} {v:.6}"))
-            .collect();
-        let kept = match latest_checkpoint(&ckpt_dir) {
-            Some(c) => format!(
-                "the last good checkpoint is {c} (iteration {}); lower the learning rates and {resume_hint}",
-                checkpoint_iteration(&schedule, &ckpt_dir, c)
-            ),
-            None => "no checkpoint was written yet".into(),
-        };
-        return Err(Error::invalid(
-            "training",
-            format!("iteration {}", fault.iteration),
-            format!(
-                "not finite: {} ({}); stopped without saving this state: {kept}",
-                fault.culprits().join(", "),
-                values.join(", ")
-            ),
-        ));
-    }
-    if let Some((iteration, e)) = stop.take_data_error() {
-        let kept = match latest_checkpoint(&ckpt_dir) {
-            Some(c) => format!(
-                "checkpoint {c} in {} holds iterations 0..{}; fix the file and {resume_hint}",
-                ckpt_dir.display(),
-                checkpoint_iteration(&schedule, &ckpt_dir, c)
-            ),
-            None => "no checkpoint was written yet; fix the file and start again".into(),
-        };
-        return Err(Error::invalid(
-            "training",
-            format!("iteration {iteration}"),
-            format!("a frame could not be read: {e}; {kept}"),
-        ));
-    }
-    if let Some(e) = result.error {
-        return Err(Error::invalid(
-            out.display().to_string(),
-            "training",
-            format!("stopped by an error: {e}"),
-        ));
-    }
-    let reached = stop
-        .stopped_at()
-        .unwrap_or(end_iteration)
-        .min(end_iteration);
-    let complete = reached == schedule.total;
-    let avatar = result.model.avatar;
+    let frames = train_set.len();
+    let launched = launch.run(
+        options,
+        training,
+        optimizer(&config),
+        lr_scheduler(&config),
+        (train_set, val_set),
+        &device,
+        |start, end| {
+            eprintln!(
+                "train: {frames} frames, {gaussians} Gaussians (R = S = {}), {} backend, iterations {start}..{end} of {}, VGG from iteration {}",
+                avatar_config.net.uv_res,
+                format!("{backend:?}").to_lowercase(),
+                config.iterations,
+                if config.ablations.vgg {
+                    config.vgg_from().to_string()
+                } else {
+                    "never".into()
+                }
+            )
+        },
+    )?;
+    let error = launched.result.error.as_ref().map(|e| e.to_string());
+    let (reached, complete) = launch.outcome(options, error, launched.end_iteration)?;
+    let avatar = launched.result.model.avatar;
     let avatar_path = out.join(files::AVATAR);
     if complete {
         avatar.clone().save_file(&avatar_path).map_err(|e| {
             Error::invalid(avatar_path.display().to_string(), "save", e.to_string())
         })?;
     } else {
-        let saved = match latest_checkpoint(&ckpt_dir) {
-            Some(c) => format!(
-                "checkpoint {c} in {} holds iterations 0..{}",
-                ckpt_dir.display(),
-                checkpoint_iteration(&schedule, &ckpt_dir, c)
-            ),
-            None => "no checkpoint was written".into(),
-        };
-        let message = format!(
-            "train: stopped at iteration {reached} of {}; {saved}; {resume_hint}",
-            schedule.total
-        );
-        if let Some(signal) = stop.signal() {
-            return Err(Error::Stopped {
-                signal,
-                message: format!("{} ({message})", signals::name(signal)),
-            });
-        }
-        eprintln!("{message}");
+        launch.stopped(options, reached)?;
     }
+    drop(folder);
     Ok(TrainReport {
-        start_iteration,
+        start_iteration: launched.start_iteration,
         end_iteration: reached,
         avatar,
         gaussians,
-        seconds,
+        seconds: launched.seconds,
         avatar_path,
         complete,
     })
