@@ -3,6 +3,9 @@
 //! builds and steps, a stopped run resumes with its iteration count, the two learning rates
 //! reach their parameter groups, the frame order survives a resume.
 
+#[path = "train/gaussianavatars.rs"]
+mod gaussianavatars;
+
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 

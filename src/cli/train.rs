@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use clap::Args;
 
 use crate::device::BackendKind;
-use crate::head::HeadAsset;
 use crate::gaussianavatars::train::GaTrainConfig;
+use crate::head::HeadAsset;
 use crate::train::{self, TrainConfig, TrainOptions};
 
 /// The avatar models `train` can train.

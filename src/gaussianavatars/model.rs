@@ -69,10 +69,13 @@ impl GaModel {
             )),
             scaling: Param::from_tensor(t(&g.log_scales, 3)),
             rotation: Param::from_tensor(t(&g.quats, 4)),
-            binding: Param::initialized(ParamId::new(), Tensor::<1, Int>::from_data(
-                TensorData::new(binding.iter().map(|&f| f as i32).collect::<Vec<_>>(), [n]),
-                device,
-            )),
+            binding: Param::initialized(
+                ParamId::new(),
+                Tensor::<1, Int>::from_data(
+                    TensorData::new(binding.iter().map(|&f| f as i32).collect::<Vec<_>>(), [n]),
+                    device,
+                ),
+            ),
             sh_degree: g.sh_degree,
         })
     }

@@ -44,6 +44,7 @@ use burn::tensor::{DType, Device, Shape, Tensor, TensorData};
 use burn::train::{InferenceStep, TrainOutput, TrainStep};
 use serde::{Deserialize, Serialize};
 
+use super::binding::check_binding;
 use super::constants::{self as ga, scaled};
 use super::density::{self, DensifySettings, Stats};
 use super::folder::write_point_cloud;
@@ -62,8 +63,8 @@ use crate::train::loss::LossTerms;
 use crate::train::metrics::Term;
 use crate::train::step::gradient_l1;
 use crate::train::{
-    Fault, Launch, Schedule, StepOutput, StopControl, TrainBatch, TrainOptions, files,
-    open_frames, prepare_folder,
+    Fault, Launch, Schedule, StepOutput, StopControl, TrainBatch, TrainOptions, files, open_frames,
+    prepare_folder,
 };
 
 /// Files of a GaussianAvatars run in its output folder.
@@ -133,9 +134,8 @@ impl GaTrainConfig {
     /// Reads and validates a config file.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let c: Self = serde_json::from_str(&text).map_err(|e| {
-            Error::invalid(path.display().to_string(), "json", e.to_string())
-        })?;
+        let c: Self = serde_json::from_str(&text)
+            .map_err(|e| Error::invalid(path.display().to_string(), "json", e.to_string()))?;
         c.validate(&path.display().to_string())?;
         Ok(c)
     }
@@ -146,7 +146,11 @@ impl GaTrainConfig {
             return Err(Error::invalid(what, "iterations", "must be at least 1"));
         }
         if self.checkpoint_every == 0 {
-            return Err(Error::invalid(what, "checkpoint_every", "must be at least 1"));
+            return Err(Error::invalid(
+                what,
+                "checkpoint_every",
+                "must be at least 1",
+            ));
         }
         if self.sh_degree > 3 {
             return Err(Error::invalid(
@@ -263,9 +267,8 @@ impl LrScheduler for PositionLr {
 
 /// The learning rates of [`GaTraining`]'s parameters (`training_setup`).
 pub fn lr_scheduler(total: usize, extent: f32) -> ModuleLrScheduler {
-    let group = |name: &str| {
-        ParamGroup::from_regex(format!(r"(^|\.){name}$")).expect("a valid pattern")
-    };
+    let group =
+        |name: &str| ParamGroup::from_regex(format!(r"(^|\.){name}$")).expect("a valid pattern");
     let ext = extent as f64;
     ModuleLrScheduler::new(0.0)
         .with_group(
@@ -386,7 +389,11 @@ pub struct GaTraining {
 /// projected covariance, 0 for the Gaussians the rasterizer culls), on the host.
 pub fn screen_radii(g: &Gaussians, camera: &Camera) -> Vec<f32> {
     let h2 = |t: Tensor<2>| -> Vec<f32> { t.detach().into_data().iter::<f32>().collect() };
-    let (means, cov6, colors) = (h2(g.means.clone()), h2(g.cov6.clone()), h2(g.colors.clone()));
+    let (means, cov6, colors) = (
+        h2(g.means.clone()),
+        h2(g.cov6.clone()),
+        h2(g.colors.clone()),
+    );
     let opacities = host1(g.opacities.clone().detach());
     let scene = cpu::Scene {
         means: &means,
@@ -413,72 +420,81 @@ pub fn screen_radii(g: &Gaussians, camera: &Camera) -> Vec<f32> {
         .collect()
 }
 
-impl GaTraining {
-    /// Renders frame 0 of `item` and evaluates GaussianAvatars' objective. Returns the
-    /// terms, the PSNR, the tap (for the screen-space gradient) and the radii.
-    fn losses(
-        &self,
-        item: &TrainBatch,
-        degree: usize,
-        tap: bool,
-    ) -> (LossTerms, Tensor<1>, Tensor<2>, Vec<f32>, Tensor<2>) {
-        let batch = &item.batch;
-        let camera = batch.cameras[0];
-        let [_, v, _] = batch.vertices.dims();
-        let vertices = batch.vertices.clone().narrow(0, 0, 1).reshape([v, 3]);
-        let g = self.model.gaussians_at_degree(
-            &self.setup.faces,
-            vertices.clone(),
-            camera.position(),
-            degree,
-        );
-        let n = g.len();
-        let mut screen = Tensor::<2>::zeros([n, 2], &g.means.device());
-        if tap {
-            screen = screen.require_grad();
-        }
-        let params = SplatParams {
-            camera,
-            background: BACKGROUND,
-        };
-        let rendered = splat::render_tapped(&g, screen.clone(), &params)
-            .unwrap_or_else(|e| panic!("GaussianAvatars render: {e}"));
-        let radii = screen_radii(&g, &camera);
-        let visible = Tensor::<1>::from_data(
-            TensorData::new(
-                radii.iter().map(|&r| f32::from(r > 0.0)).collect::<Vec<_>>(),
-                [n],
-            ),
-            &g.means.device(),
-        );
-        let [h, w, _] = rendered.image.dims();
-        let a = rendered.image.reshape([1, h, w, 3]).permute([0, 3, 1, 2]);
-        let b = batch.images.clone().narrow(0, 0, 1).permute([0, 3, 1, 2]);
-        let l1 = metrics::l1(a.clone(), b.clone());
-        let dssim = metrics::ssim_loss(a.clone(), b.clone());
-        let position = position_loss(self.model.xyz.val(), visible.clone());
-        let scale = scale_loss(self.model.scaling.val(), visible);
-        let total = l1.clone() * (1.0 - ga::LAMBDA_DSSIM)
-            + dssim.clone() * ga::LAMBDA_DSSIM
-            + position.clone()
-            + scale.clone();
-        let psnr = psnr(a.detach(), b);
-        (
-            LossTerms {
-                total,
-                l1,
-                dssim,
-                vgg: None,
-                position,
-                scale,
-            },
-            psnr,
-            screen,
-            radii,
-            vertices,
-        )
-    }
+/// One view through [`objective`]: the terms, the PSNR, the tap (whose gradient is the
+/// screen-space one), the screen radii and the posed vertices.
+pub struct FrameLoss {
+    pub terms: LossTerms,
+    pub psnr: Tensor<1>,
+    pub screen: Tensor<2>,
+    pub radii: Vec<f32>,
+    pub vertices: Tensor<2>,
+}
 
+/// GaussianAvatars' objective (`train.py`) on frame 0 of `item`, colours from the SH bands
+/// up to `degree`; `tap`: track the screen-space tap for its gradient.
+pub fn objective(
+    model: &GaModel,
+    faces: &[[u32; 3]],
+    item: &TrainBatch,
+    degree: usize,
+    tap: bool,
+) -> FrameLoss {
+    let batch = &item.batch;
+    let camera = batch.cameras[0];
+    let [_, v, _] = batch.vertices.dims();
+    let vertices = batch.vertices.clone().narrow(0, 0, 1).reshape([v, 3]);
+    let g = model.gaussians_at_degree(faces, vertices.clone(), camera.position(), degree);
+    let n = g.len();
+    let mut screen = Tensor::<2>::zeros([n, 2], &g.means.device());
+    if tap {
+        screen = screen.require_grad();
+    }
+    let params = SplatParams {
+        camera,
+        background: BACKGROUND,
+    };
+    let rendered = splat::render_tapped(&g, screen.clone(), &params)
+        .unwrap_or_else(|e| panic!("GaussianAvatars render: {e}"));
+    let radii = screen_radii(&g, &camera);
+    let visible = Tensor::<1>::from_data(
+        TensorData::new(
+            radii
+                .iter()
+                .map(|&r| f32::from(r > 0.0))
+                .collect::<Vec<_>>(),
+            [n],
+        ),
+        &g.means.device(),
+    );
+    let [h, w, _] = rendered.image.dims();
+    let a = rendered.image.reshape([1, h, w, 3]).permute([0, 3, 1, 2]);
+    let b = batch.images.clone().narrow(0, 0, 1).permute([0, 3, 1, 2]);
+    let l1 = metrics::l1(a.clone(), b.clone());
+    let dssim = metrics::ssim_loss(a.clone(), b.clone());
+    let position = position_loss(model.xyz.val(), visible.clone());
+    let scale = scale_loss(model.scaling.val(), visible);
+    let total = l1.clone() * (1.0 - ga::LAMBDA_DSSIM)
+        + dssim.clone() * ga::LAMBDA_DSSIM
+        + position.clone()
+        + scale.clone();
+    let psnr = psnr(a.detach(), b);
+    FrameLoss {
+        terms: LossTerms {
+            total,
+            l1,
+            dssim,
+            vgg: None,
+            position,
+            scale,
+        },
+        psnr,
+        screen,
+        radii,
+        vertices,
+    }
+}
+
+impl GaTraining {
     /// The parameter ids of the Gaussians' attributes, in [`GaModel`]'s order.
     fn attribute_ids(&self) -> Vec<ParamId> {
         let m = &self.model;
@@ -546,7 +562,13 @@ impl TrainStep for GaTraining {
     fn step(&self, item: TrainBatch) -> TrainOutput<StepOutput> {
         let i = item.iteration + 1;
         let degree = self.setup.schedule.degree(i, self.model.sh_degree);
-        let (terms, psnr, screen, radii, vertices) = self.losses(&item, degree, true);
+        let FrameLoss {
+            terms,
+            psnr,
+            screen,
+            radii,
+            vertices,
+        } = objective(&self.model, &self.setup.faces, &item, degree, true);
         let raw = terms.total.backward();
         let screen_grad = screen
             .grad(&raw)
@@ -614,9 +636,11 @@ impl TrainStep for GaTraining {
             stats.add_view(&p.screen_grad, &p.radii);
         }
         let mut me = self;
-        me.density.face_scale =
-            Param::initialized(me.density.face_scale.id, frozen(p.face_scale.clone(), &device).val())
-                .set_require_grad(false);
+        me.density.face_scale = Param::initialized(
+            me.density.face_scale.id,
+            frozen(p.face_scale.clone(), &device).val(),
+        )
+        .set_require_grad(false);
         let white = BACKGROUND == [1.0, 1.0, 1.0];
         let reset = schedule.resets(i, white);
         if let Some(size) = schedule.densifies(i) {
@@ -642,6 +666,17 @@ impl TrainStep for GaTraining {
                 density::reset_opacity(&mut d.stored.opacity_logits);
             }
             let n = d.stored.len();
+            // Every tenth densification, and the first, in the progress output.
+            let event = (i - schedule.densify_from) / schedule.densify_interval;
+            if event % 10 == 0 || event <= 1 {
+                eprintln!(
+                    "train: it {i}: densified: {} cloned, {} split, {} pruned: {} -> {n} Gaussians",
+                    d.cloned,
+                    d.split,
+                    d.pruned,
+                    stored.len()
+                );
+            }
             me = me.replaced(&d.stored, &d.binding, Stats::zeros(n));
             let zeroed = reset.then_some(me.model.opacity.id);
             *optim = edit_moments(optim, &ids, &d.old_from_new, zeroed);
@@ -686,8 +721,14 @@ impl InferenceStep for GaTraining {
 
     /// The objective on a held-out frame, every SH band on.
     fn step(&self, item: TrainBatch) -> StepOutput {
-        let (terms, psnr, _, _, _) = self.losses(&item, self.model.sh_degree, false);
-        StepOutput::new(&terms, psnr, 1)
+        let f = objective(
+            &self.model,
+            &self.setup.faces,
+            &item,
+            self.model.sh_degree,
+            false,
+        );
+        StepOutput::new(&f.terms, f.psnr, 1)
     }
 }
 
@@ -832,6 +873,8 @@ pub struct GaTrainReport {
     pub end_iteration: usize,
     /// Gaussians at the end.
     pub gaussians: usize,
+    /// The trained Gaussians (on the inner, non-autodiff device).
+    pub model: GaModel,
     pub seconds: f64,
     /// `OUT/point_cloud/iteration_N/` (only a complete run writes it).
     pub output: PathBuf,
@@ -937,6 +980,7 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
         log_every: config.log_every,
         val_frames: config.val_frames,
         stop,
+        model_arg: " --model gaussianavatars",
     };
     let frames = train_set.len();
     let ga_schedule = GaSchedule::new(config.iterations);
@@ -970,6 +1014,7 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
         .join(format!("iteration_{}", config.iterations));
     if complete {
         let (stored, binding) = trained.model.to_stored();
+        check_binding(&binding, stored.len(), faces.len())?;
         std::fs::create_dir_all(&output).map_err(|e| Error::io(&output, e))?;
         write_point_cloud(&output, &stored, &binding)?;
         let identity = out.join(files::IDENTITY);
@@ -983,6 +1028,7 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
         start_iteration: launched.start_iteration,
         end_iteration: reached,
         gaussians,
+        model: trained.model,
         seconds: launched.seconds,
         output,
         complete,
@@ -1009,7 +1055,12 @@ mod tests {
         assert!(s.resets(10_000, true));
         let s = GaSchedule::new(6_000);
         assert_eq!(
-            (s.sh_interval, s.densify_from, s.densify_interval, s.opacity_reset),
+            (
+                s.sh_interval,
+                s.densify_from,
+                s.densify_interval,
+                s.opacity_reset
+            ),
             (10, 100, 20, 600)
         );
     }
@@ -1029,7 +1080,10 @@ mod tests {
         }
         assert!((lr.step() - ga::expon_lr(0.005, 0.000_05, 51, 100)).abs() < 1e-15);
         let rec = lr.to_record();
-        let mut other = PositionLr { step: 0, ..lr.clone() };
+        let mut other = PositionLr {
+            step: 0,
+            ..lr.clone()
+        };
         other.load_record(rec);
         assert_eq!(other.step, 51);
     }

@@ -387,6 +387,9 @@ pub struct Launch {
     pub val_frames: usize,
     /// Stops the run ([`StopControl`]).
     pub stop: StopControl,
+    /// The `train` arguments naming the model in resume hints (`""` for TexAvatars,
+    /// `" --model gaussianavatars"`).
+    pub model_arg: &'static str,
 }
 
 /// What [`Launch::run`] hands back: the learner's result, the process's first and last
@@ -515,7 +518,7 @@ impl Launch {
         let out = &options.out;
         let ckpt_dir = out.join(files::CHECKPOINTS);
         remove_stale_tmp(&ckpt_dir)?;
-        let resume_hint = resume_hint(options);
+        let resume_hint = resume_hint(options, self.model_arg);
         if let Some(fault) = stop.take_fault() {
             let values: Vec<String> = fault
                 .values
@@ -583,7 +586,7 @@ impl Launch {
         let message = format!(
             "train: stopped at iteration {reached} of {}; {saved}; {}",
             self.schedule.total,
-            resume_hint(options)
+            resume_hint(options, self.model_arg)
         );
         if let Some(signal) = self.stop.signal() {
             return Err(Error::Stopped {
@@ -596,9 +599,9 @@ impl Launch {
     }
 }
 
-fn resume_hint(options: &TrainOptions) -> String {
+fn resume_hint(options: &TrainOptions, model_arg: &str) -> String {
     format!(
-        "resume with `texavatars train --data {} --config CONFIG --out {} --resume`",
+        "resume with `texavatars train{model_arg} --data {} --config CONFIG --out {} --resume`",
         options.data.display(),
         options.out.display()
     )
@@ -713,6 +716,7 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         log_every: config.log_every,
         val_frames: config.val_frames,
         stop,
+        model_arg: "",
     };
     let frames = train_set.len();
     let launched = launch.run(
