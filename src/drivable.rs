@@ -19,6 +19,14 @@ use crate::head::HeadAsset;
 use crate::splat::Gaussians;
 use crate::splat::ply::PlyGaussians;
 
+/// What a model computes from the camera alone and keeps while the camera stays put
+/// ([`Drivable::view_cache`]); each model knows its own type.
+pub type ViewCache = Box<dyn std::any::Any>;
+
+/// Called at the end of each stage of [`Drivable::frame_gaussians_staged`] with the stage's
+/// name (e.g. to synchronise the device and time it).
+pub type StageMark<'a> = &'a mut dyn FnMut(&'static str) -> Result<()>;
+
 /// An avatar that turns one tracked frame into Gaussians.
 pub trait Drivable {
     /// The model's name in messages ("TexAvatars", "GaussianAvatars").
@@ -44,6 +52,24 @@ pub trait Drivable {
         c: &Conditioning,
         camera: &Camera,
         device: &Device,
+    ) -> Result<Gaussians>;
+
+    /// What the model computes from `camera` alone, to reuse for every frame seen from it
+    /// (TexAvatars: the view's Pluecker map); `None`: nothing.
+    fn view_cache(&self, _camera: &Camera, _device: &Device) -> Result<Option<ViewCache>> {
+        Ok(None)
+    }
+
+    /// [`Drivable::frame_gaussians`] with the view's cache (from [`Drivable::view_cache`]
+    /// for the same camera), calling `mark` at the end of each of the model's stages
+    /// (TexAvatars: "decoders", "lifting"; GaussianAvatars: "binding").
+    fn frame_gaussians_staged(
+        &self,
+        c: &Conditioning,
+        camera: &Camera,
+        view: Option<&ViewCache>,
+        device: &Device,
+        mark: StageMark<'_>,
     ) -> Result<Gaussians>;
 
     /// The frame's world-space Gaussians as a 3DGS PLY in the model's own terms (e.g. its

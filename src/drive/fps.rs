@@ -1,39 +1,44 @@
 //! Frame rate of a driven avatar with GaussianAvatars' protocol: one view of one frame
 //! rendered `renders` times (500), in `rounds` rounds (3), at 802 x 550; frames per second
 //! = renders / round time. Each render is timed by stage, with the device synchronised after
-//! each (so GPU stages are charged to themselves): the decoders (Pluecker map, Exp2Code,
-//! view encoder, both decoders), the lifting operator, the rasterizer. The image stays on
-//! the device (no read-back), as in the protocol. The view's Pluecker map depends on the
-//! camera alone, so, as a viewer holding its camera still would, it is computed once per
-//! round's view before the loop (its time is reported on its own, [`FpsReport::view_input_ms`]).
+//! each (so GPU stages are charged to themselves): the model's own stages
+//! ([`Drivable::frame_gaussians_staged`]: TexAvatars' decoders (Exp2Code, view encoder,
+//! both decoders) and lifting operator; GaussianAvatars' binding), then the rasterizer. The
+//! image stays on the device (no read-back), as in the protocol. What depends on the camera
+//! alone ([`Drivable::view_cache`]: TexAvatars' Pluecker map) is computed once per round's
+//! view before the loop, as a viewer holding its camera still would (its time is reported
+//! on its own, [`FpsReport::view_input_ms`]).
 
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 use burn::tensor::Device;
 
 use crate::camera::Camera;
 use crate::data::Conditioning;
+use crate::drivable::Drivable;
 use crate::error::{Error, Result};
-use crate::model::Avatar;
 use crate::model::constants::BACKGROUND;
-use crate::model::drivable::frame_inputs;
 use crate::splat::{self, SplatParams};
 
-/// One round's figures (per render, milliseconds, means over the round).
-#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+/// One round's figures (per render, milliseconds, means over the round): the model's stages
+/// as `"{stage}_ms"` (e.g. `decoders_ms`, `lifting_ms`, `binding_ms`) and the rasterizer's.
+#[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct Round {
     pub fps: f64,
     pub total_ms: f64,
-    pub decoders_ms: f64,
-    pub lifting_ms: f64,
+    #[serde(flatten)]
+    pub stages_ms: BTreeMap<String, f64>,
     pub rasterizer_ms: f64,
 }
 
 /// All rounds.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct FpsReport {
+    /// The model ("TexAvatars", "GaussianAvatars").
+    pub model: String,
     pub renders: usize,
-    /// Time of the camera's Pluecker map (once, before the renders).
+    /// Time of what the view alone needs (once, before the renders).
     pub view_input_ms: f64,
     pub gaussians: usize,
     pub width: u32,
@@ -45,13 +50,21 @@ impl FpsReport {
     /// The mean of the rounds.
     pub fn mean(&self) -> Round {
         let n = self.rounds.len().max(1) as f64;
-        let sum = |f: fn(&Round) -> f64| self.rounds.iter().map(f).sum::<f64>() / n;
+        let sum = |f: &dyn Fn(&Round) -> f64| self.rounds.iter().map(f).sum::<f64>() / n;
+        let mut stages_ms = BTreeMap::new();
+        if let Some(first) = self.rounds.first() {
+            for k in first.stages_ms.keys() {
+                stages_ms.insert(
+                    k.clone(),
+                    sum(&|r| r.stages_ms.get(k).copied().unwrap_or(0.0)),
+                );
+            }
+        }
         Round {
-            fps: sum(|r| r.fps),
-            total_ms: sum(|r| r.total_ms),
-            decoders_ms: sum(|r| r.decoders_ms),
-            lifting_ms: sum(|r| r.lifting_ms),
-            rasterizer_ms: sum(|r| r.rasterizer_ms),
+            fps: sum(&|r| r.fps),
+            total_ms: sum(&|r| r.total_ms),
+            stages_ms,
+            rasterizer_ms: sum(&|r| r.rasterizer_ms),
         }
     }
 }
@@ -65,7 +78,7 @@ fn sync(device: &Device) -> Result<()> {
 /// Renders frame `c` from `camera` `renders` times per round for `rounds` rounds (after one
 /// warm-up render); `progress(round)` after each round.
 pub fn measure(
-    avatar: &Avatar,
+    avatar: &dyn Drivable,
     c: &Conditioning,
     camera: &Camera,
     device: &Device,
@@ -80,37 +93,32 @@ pub fn measure(
             "renders and rounds must be at least 1",
         ));
     }
-    let (cond, verts) = frame_inputs(c, device);
-    let verts = verts.squeeze_dim::<2>(0);
     let params = SplatParams {
         camera: *camera,
         background: BACKGROUND,
     };
     let t = Instant::now();
-    let pluecker = avatar
-        .net
-        .view_input(std::slice::from_ref(camera), device)?;
+    let view = avatar.view_cache(camera, device)?;
     sync(device)?;
     let view_input_ms = t.elapsed().as_secs_f64() * 1e3;
-    let once = |times: &mut [f64; 3]| -> Result<()> {
-        let t0 = Instant::now();
-        let maps = avatar.net.forward(cond.clone(), pluecker.clone())?;
-        sync(device)?;
-        let t1 = Instant::now();
-        let g = avatar.gaussians(&maps, 0, verts.clone())?;
-        sync(device)?;
-        let t2 = Instant::now();
+    let once = |times: &mut BTreeMap<String, f64>| -> Result<()> {
+        let mut last = Instant::now();
+        let g = avatar.frame_gaussians_staged(c, camera, view.as_ref(), device, &mut |stage| {
+            sync(device)?;
+            let now = Instant::now();
+            *times.entry(format!("{stage}_ms")).or_insert(0.0) += (now - last).as_secs_f64();
+            last = now;
+            Ok(())
+        })?;
         let out = splat::render(&g, &params)?;
         sync(device)?;
         drop(out);
-        let t3 = Instant::now();
-        times[0] += (t1 - t0).as_secs_f64();
-        times[1] += (t2 - t1).as_secs_f64();
-        times[2] += (t3 - t2).as_secs_f64();
+        *times.entry("rasterizer".into()).or_insert(0.0) += last.elapsed().as_secs_f64();
         Ok(())
     };
-    once(&mut [0.0; 3])?;
+    once(&mut BTreeMap::new())?;
     let mut report = FpsReport {
+        model: avatar.model_name().into(),
         renders,
         view_input_ms,
         gaussians: avatar.num_gaussians(),
@@ -119,22 +127,22 @@ pub fn measure(
         rounds: Vec::with_capacity(rounds),
     };
     for k in 0..rounds {
-        let mut t = [0.0f64; 3];
+        let mut t = BTreeMap::new();
         let start = Instant::now();
         for _ in 0..renders {
             once(&mut t)?;
         }
         let wall = start.elapsed().as_secs_f64();
         let per = 1e3 / renders as f64;
+        let rasterizer_ms = t.remove("rasterizer").unwrap_or(0.0) * per;
         let r = Round {
             fps: renders as f64 / wall,
             total_ms: wall * per,
-            decoders_ms: t[0] * per,
-            lifting_ms: t[1] * per,
-            rasterizer_ms: t[2] * per,
+            stages_ms: t.into_iter().map(|(k, v)| (k, v * per)).collect(),
+            rasterizer_ms,
         };
-        report.rounds.push(r);
         progress(k + 1, &r);
+        report.rounds.push(r);
     }
     Ok(report)
 }

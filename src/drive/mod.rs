@@ -13,4 +13,4 @@ pub mod render;
 pub use cameras::{CameraPath, View, cameras};
 pub use export::{ExportStats, HostGaussians, to_ply};
 pub use motion::{Curves, Identity, Motion, MotionFrame, MotionKind};
-pub use render::{RenderOptions, RenderReport, render_frame, render_motion};
+pub use render::{RenderOptions, RenderReport, render_frame, render_frame_in_view, render_motion};

@@ -16,7 +16,7 @@ use image::{Delay, Frame, RgbImage, RgbaImage};
 
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drivable::Drivable;
+use crate::drivable::{Drivable, ViewCache};
 use crate::drive::motion::Motion;
 use crate::drive::outputs;
 use crate::error::{Error, Result};
@@ -95,7 +95,19 @@ pub fn render_frame(
     camera: &Camera,
     device: &Device,
 ) -> Result<(Vec<f32>, Gaussians)> {
-    let g = avatar.frame_gaussians(c, camera, device)?;
+    render_frame_in_view(avatar, c, camera, None, device)
+}
+
+/// [`render_frame`] with what the model computed from this camera alone
+/// ([`Drivable::view_cache`]), kept by callers while the camera stays put.
+pub fn render_frame_in_view(
+    avatar: &dyn Drivable,
+    c: &Conditioning,
+    camera: &Camera,
+    view: Option<&ViewCache>,
+    device: &Device,
+) -> Result<(Vec<f32>, Gaussians)> {
+    let g = avatar.frame_gaussians_staged(c, camera, view, device, &mut |_| Ok(()))?;
     let params = crate::splat::SplatParams {
         camera: *camera,
         background: crate::model::constants::BACKGROUND,
@@ -199,8 +211,14 @@ fn render_frames(
     let gif = opts.out.join("render.gif");
     let mut gif_out = GifWriter::create(&gif, opts.fps)?;
     let mut frames = Vec::with_capacity(n);
+    // The view's cache, kept while the camera stays put (a fixed camera: one for the run).
+    let mut view: Option<(Camera, Option<ViewCache>)> = None;
     for (i, (f, cam)) in motion.frames.iter().zip(cameras).enumerate() {
-        let (rgb, _) = render_frame(avatar, &f.conditioning, cam, device)?;
+        if view.as_ref().is_none_or(|(c, _)| c != cam) {
+            view = Some((*cam, avatar.view_cache(cam, device)?));
+        }
+        let cache = view.as_ref().and_then(|(_, v)| v.as_ref());
+        let (rgb, _) = render_frame_in_view(avatar, &f.conditioning, cam, cache, device)?;
         let (w, h) = (cam.width as usize, cam.height as usize);
         let path = dir.join(format!("{i:05}.png"));
         io::image::write_png(&path, w, h, &rgb)?;

@@ -16,7 +16,7 @@ use burn::tensor::Device;
 use super::binding::{check_binding, face_frames, to_world};
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drivable::Drivable;
+use crate::drivable::{Drivable, StageMark, ViewCache};
 use crate::error::{Error, Result};
 use crate::limits;
 use crate::splat::Gaussians;
@@ -172,6 +172,21 @@ impl Drivable for GaAvatar {
     ) -> Result<Gaussians> {
         let world = self.world(&c.vertices)?;
         Ok(Gaussians::from_ply(&world, camera.position(), device))
+    }
+
+    /// One stage, "binding": the triangles' frames and the world-space Gaussians on the
+    /// host ([`super::binding::to_world`]), uploaded, colours evaluated on the device.
+    fn frame_gaussians_staged(
+        &self,
+        c: &Conditioning,
+        camera: &Camera,
+        _view: Option<&ViewCache>,
+        device: &Device,
+        mark: StageMark<'_>,
+    ) -> Result<Gaussians> {
+        let g = self.frame_gaussians(c, camera, device)?;
+        mark("binding")?;
+        Ok(g)
     }
 
     fn frame_ply(&self, c: &Conditioning) -> Option<Result<PlyGaussians>> {

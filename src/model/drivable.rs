@@ -6,7 +6,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use super::Avatar;
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drivable::Drivable;
+use crate::drivable::{Drivable, StageMark, ViewCache};
 use crate::error::Result;
 use crate::limits;
 use crate::splat::Gaussians;
@@ -74,5 +74,30 @@ impl Drivable for Avatar {
     ) -> Result<Gaussians> {
         let pluecker = self.net.view_input(std::slice::from_ref(camera), device)?;
         self.frame_gaussians_with(c, pluecker, device)
+    }
+
+    fn view_cache(&self, camera: &Camera, device: &Device) -> Result<Option<ViewCache>> {
+        let pluecker = self.net.view_input(std::slice::from_ref(camera), device)?;
+        Ok(Some(Box::new(pluecker)))
+    }
+
+    fn frame_gaussians_staged(
+        &self,
+        c: &Conditioning,
+        camera: &Camera,
+        view: Option<&ViewCache>,
+        device: &Device,
+        mark: StageMark<'_>,
+    ) -> Result<Gaussians> {
+        let pluecker = match view.and_then(|v| v.downcast_ref::<Tensor<4>>()) {
+            Some(p) => p.clone(),
+            None => self.net.view_input(std::slice::from_ref(camera), device)?,
+        };
+        let (cond, verts) = frame_inputs(c, device);
+        let maps = self.net.forward(cond, pluecker)?;
+        mark("decoders")?;
+        let g = self.gaussians(&maps, 0, verts.squeeze_dim::<2>(0))?;
+        mark("lifting")?;
+        Ok(g)
     }
 }

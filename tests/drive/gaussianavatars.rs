@@ -326,6 +326,38 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
     let m = &report.means["test"];
     assert_eq!(m.images, 8);
     assert!(m.psnr.is_finite() && m.psnr > 0.0, "{}", m.psnr);
+
+    // `bench fps` on the folder: the model's own stage (binding) and the rasterizer.
+    let json = tmp("fps.json");
+    let text = cli::texavatars_ok([
+        "bench".as_ref(),
+        "fps".as_ref(),
+        "--checkpoint".as_ref(),
+        model.as_os_str(),
+        "--renders".as_ref(),
+        "2".as_ref(),
+        "--rounds".as_ref(),
+        "1".as_ref(),
+        "--size".as_ref(),
+        "24x32".as_ref(),
+        "--json".as_ref(),
+        json.as_os_str(),
+    ]);
+    assert!(
+        text.contains("binding") && text.contains("rasterizer"),
+        "{text}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("parse");
+    assert_eq!(v["model"], "GaussianAvatars");
+    assert_eq!(v["gaussians"].as_u64(), Some(gs.len() as u64));
+    for k in ["fps", "binding_ms", "rasterizer_ms"] {
+        assert!(
+            v["rounds"][0][k].as_f64().is_some_and(|x| x > 0.0),
+            "{k}: {v}"
+        );
+    }
+    let _ = std::fs::remove_file(&json);
     for d in [&model, &out, &render, &data, &opts.out] {
         let _ = std::fs::remove_dir_all(d);
     }
