@@ -7,9 +7,9 @@ use clap::{Args, Subcommand};
 
 use crate::camera::CameraFile;
 use crate::cli::render::{DriveArgs, Driven, progress_bar};
+use crate::data::BACKGROUND;
 use crate::drive::{self, ExportStats, HostGaussians, outputs};
 use crate::io;
-use crate::model::constants::BACKGROUND;
 use crate::splat::ply;
 
 /// Export commands.

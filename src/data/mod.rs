@@ -8,6 +8,10 @@ pub mod validate;
 pub mod vhap;
 
 pub use batch::{HeadBatch, HeadBatcher};
+
+/// The background the ground truth is composited on and every model renders on (method
+/// §1, §5: white; GaussianAvatars' `--white_background` for NeRSemble).
+pub const BACKGROUND: [f32; 3] = [1.0, 1.0, 1.0];
 pub use dataset::{Conditioning, HeadDataset, HeadItem};
 pub use identity::Identity;
 pub use split::Split;

@@ -110,7 +110,7 @@ pub fn render_frame_in_view(
     let g = avatar.frame_gaussians_staged(c, camera, view, device, &mut |_| Ok(()))?;
     let params = crate::splat::SplatParams {
         camera: *camera,
-        background: crate::model::constants::BACKGROUND,
+        background: crate::data::BACKGROUND,
     };
     let image = crate::splat::render(&g, &params)?.image;
     Ok((image.into_data().iter::<f32>().collect(), g))

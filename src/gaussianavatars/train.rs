@@ -51,11 +51,11 @@ use super::folder::write_point_cloud;
 use super::losses::{position_loss, scale_loss};
 use super::model::GaModel;
 use crate::camera::Camera;
+use crate::data::BACKGROUND;
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::head::HeadAsset;
 use crate::metrics::{self, psnr};
-use crate::model::constants::BACKGROUND;
 use crate::splat::cpu::{self, ProjCamera};
 use crate::splat::demo::Pcg;
 use crate::splat::{self, Gaussians, SplatParams};
@@ -224,13 +224,14 @@ impl GaSchedule {
 
     /// `Some(size_threshold)` when iteration `i` densifies.
     pub fn densifies(&self, i: usize) -> Option<Option<f32>> {
-        (self.tracks(i) && i > self.densify_from && i % self.densify_interval == 0)
+        (self.tracks(i) && i > self.densify_from && i.is_multiple_of(self.densify_interval))
             .then(|| (i > self.opacity_reset).then_some(ga::PRUNE_SCREEN_SIZE))
     }
 
     /// Whether iteration `i` resets the opacities (`white`: the background is white).
     pub fn resets(&self, i: usize, white: bool) -> bool {
-        self.tracks(i) && (i % self.opacity_reset == 0 || (white && i == self.densify_from))
+        self.tracks(i)
+            && (i.is_multiple_of(self.opacity_reset) || (white && i == self.densify_from))
     }
 }
 
@@ -668,7 +669,7 @@ impl TrainStep for GaTraining {
             let n = d.stored.len();
             // Every tenth densification, and the first, in the progress output.
             let event = (i - schedule.densify_from) / schedule.densify_interval;
-            if event % 10 == 0 || event <= 1 {
+            if event.is_multiple_of(10) || event <= 1 {
                 eprintln!(
                     "train: it {i}: densified: {} cloned, {} split, {} pruned: {} -> {n} Gaussians",
                     d.cloned,
@@ -987,8 +988,7 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
     let launched = launch.run(
         options,
         training,
-        optimizer(),
-        lr_scheduler(config.iterations, extent),
+        (optimizer(), lr_scheduler(config.iterations, extent)),
         (train_set, val_set),
         &device,
         |start, end| {
@@ -1063,6 +1063,46 @@ mod tests {
             ),
             (10, 100, 20, 600)
         );
+    }
+
+    /// 3DGS's radius (diff-gaussian-rasterization `cuda_rasterizer/forward.cu`,
+    /// `preprocessCUDA`: `lambda1 = mid +
+    /// sqrt(max(0.1, mid^2 - det))`, `radius = ceil(3 sqrt(lambda1))` of the 2D covariance
+    /// with its 0.3 low-pass): an isotropic Gaussian of standard deviation 0.1 on the axis
+    /// of a camera 2 units away with f = 100 has variance 25 + 0.3 in pixels, so
+    /// `lambda1 = 25.3 + sqrt(0.1)` and the radius `ceil(3 sqrt(lambda1)) = 16`; one behind
+    /// the camera has none.
+    #[test]
+    fn screen_radius_follows_3dgs() {
+        let device = Device::flex();
+        let mut w2c = [[0.0f32; 4]; 4];
+        for (i, row) in w2c.iter_mut().enumerate() {
+            row[i] = 1.0;
+        }
+        w2c[2][3] = 2.0;
+        let camera = Camera {
+            width: 64,
+            height: 64,
+            fx: 100.0,
+            fy: 100.0,
+            cx: 32.0,
+            cy: 32.0,
+            world_to_camera: w2c,
+        };
+        let t = |v: Vec<f32>, w: usize| {
+            let n = v.len() / w;
+            Tensor::<2>::from_data(TensorData::new(v, [n, w]), &device)
+        };
+        let g = Gaussians {
+            means: t(vec![0.0, 0.0, 0.0, 0.0, 0.0, -5.0], 3),
+            cov6: t([0.01, 0.0, 0.0, 0.01, 0.0, 0.01].repeat(2), 6),
+            colors: t(vec![0.5; 6], 3),
+            opacities: Tensor::from_data(TensorData::new(vec![0.9f32, 0.9], [2]), &device),
+        };
+        let r = screen_radii(&g, &camera);
+        let lambda1 = 25.3f32 + 0.1f32.sqrt();
+        assert_eq!(r, vec![(3.0 * lambda1.sqrt()).ceil(), 0.0]);
+        assert_eq!(r[0], 16.0);
     }
 
     #[test]

@@ -90,6 +90,5 @@ pub const PAPER_APPEARANCE_AFTER_VIEW: [usize; 4] = [64, 64, RGB_CHANNELS, RGB_C
 /// The paper's view encoder (Pluecker2Code): two stride-2 convolutions 6 -> 16 -> 32.
 pub const PAPER_VIEW: [usize; 2] = [16, 32];
 
-/// The background the avatar is rendered on, and the ground truth is composited on (method
-/// §1, §5: white).
-pub const BACKGROUND: [f32; 3] = [1.0, 1.0, 1.0];
+/// The background the avatar is rendered on: the data's ([`crate::data::BACKGROUND`]).
+pub const BACKGROUND: [f32; 3] = crate::data::BACKGROUND;

@@ -423,15 +423,15 @@ impl Launch {
         self.epochs().1
     }
 
-    /// Runs burn's learner on `training` with its loaders (the objective's terms as burn
-    /// metrics, checkpoints every interval, progress lines), after `announce` has printed the
-    /// run's first line with the iterations it will train.
+    /// Runs burn's learner on `training` (with its optimiser and learning rates) and the
+    /// loaders (the objective's terms as burn metrics, checkpoints every interval, progress
+    /// lines), after `announce` has printed the run's first line with the iterations it
+    /// will train.
     pub fn run<M>(
         &self,
         options: &TrainOptions,
         training: M,
-        optim: ModuleOptimizer,
-        lr: ModuleLrScheduler,
+        (optim, lr): (ModuleOptimizer, ModuleLrScheduler),
         sets: (Arc<HeadDataset>, Option<Arc<HeadDataset>>),
         device: &burn::tensor::Device,
         announce: impl FnOnce(usize, usize),
@@ -722,8 +722,7 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     let launched = launch.run(
         options,
         training,
-        optimizer(&config),
-        lr_scheduler(&config),
+        (optimizer(&config), lr_scheduler(&config)),
         (train_set, val_set),
         &device,
         |start, end| {

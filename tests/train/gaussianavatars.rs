@@ -136,6 +136,8 @@ fn ga_run_stopped_inside_an_interval_resumes_to_the_same_gaussians() {
 /// zero), the zeroed parameter's are all zero, the others untouched.
 #[test]
 fn optimiser_moments_follow_the_rows() {
+    /// An optimiser record tensor: name, parameter id, shape, values.
+    type Moment = (String, Option<u64>, Vec<usize>, Vec<f32>);
     #[derive(Module, Debug)]
     struct Two {
         a: Param<Tensor<2>>,
@@ -159,7 +161,7 @@ fn optimiser_moments_follow_the_rows() {
     let moments = |o: &burn::optim::ModuleOptimizer| {
         let bytes = o.to_record().into_bytes().unwrap();
         let r = burn_pack::Reader::from_bytes(bytes).unwrap();
-        let mut v: Vec<(String, Option<u64>, Vec<usize>, Vec<f32>)> = r
+        let mut v: Vec<Moment> = r
             .into_tensors()
             .unwrap()
             .into_iter()
