@@ -63,7 +63,7 @@ fn mul(m: &Mat3, x: Vec3) -> Vec3 {
 /// `q / |q|`, the identity for a zero or non-finite quaternion (GaussianAvatars normalises
 /// with `torch.nn.functional.normalize`, which leaves a zero quaternion zero; a zero
 /// rotation is no rotation to the rasterizer either).
-fn unit(q: Quat) -> Quat {
+pub(crate) fn unit(q: Quat) -> Quat {
     let n = q.length();
     if n > 0.0 && n.is_finite() {
         q / n

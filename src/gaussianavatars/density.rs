@@ -31,6 +31,7 @@
 
 use glam::{Mat3, Quat, Vec3};
 
+use super::binding::unit;
 use crate::splat::demo::Pcg;
 use crate::splat::ply::PlyGaussians;
 
@@ -327,15 +328,6 @@ pub fn densify_and_prune(
 pub fn reset_opacity(opacity_logits: &mut [f32]) {
     for o in opacity_logits {
         *o = inverse_sigmoid(sigmoid(*o).min(RESET_OPACITY));
-    }
-}
-
-fn unit(q: Quat) -> Quat {
-    let n = q.length();
-    if n > 0.0 && n.is_finite() {
-        q / n
-    } else {
-        Quat::IDENTITY
     }
 }
 

@@ -60,10 +60,9 @@ use crate::splat::cpu::{self, ProjCamera};
 use crate::splat::demo::Pcg;
 use crate::splat::{self, Gaussians, SplatParams};
 use crate::train::loss::LossTerms;
-use crate::train::metrics::Term;
-use crate::train::step::gradient_l1;
+use crate::train::step::guarded;
 use crate::train::{
-    Fault, Launch, Schedule, StepOutput, StopControl, TrainBatch, TrainOptions, files, open_frames,
+    Launch, Schedule, StepOutput, StopControl, TrainBatch, TrainOptions, files, open_frames,
     prepare_folder,
 };
 
@@ -594,25 +593,13 @@ impl TrainStep for GaTraining {
             radii,
             face_scale,
         });
-        let mut out = StepOutput::new(&terms, psnr, 1);
-        if let Some(guard) = &self.setup.guard {
-            out = out.synced();
-            let mut values: Vec<(String, f64)> = Term::ALL
-                .iter()
-                .zip(out.host_values())
-                .map(|(t, v)| (t.name().to_string(), v))
-                .collect();
-            values.push(("gradient L1".into(), gradient_l1(&grads, self)));
-            if values
-                .iter()
-                .any(|(name, v)| name != Term::Psnr.name() && !v.is_finite())
-            {
-                guard.fault(Fault {
-                    iteration: item.iteration,
-                    values,
-                });
-            }
-        }
+        let out = guarded(
+            self.setup.guard.as_ref(),
+            StepOutput::new(&terms, psnr, 1),
+            item.iteration,
+            &grads,
+            self,
+        );
         TrainOutput { grads, item: out }
     }
 

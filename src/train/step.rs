@@ -181,27 +181,47 @@ impl TrainStep for AvatarTraining {
         let n = item.batch.cameras.len();
         let (terms, psnr) = self.losses(&item, self.objective.vgg_at(item.iteration));
         let grads = GradientsParams::from_grads(terms.total.backward(), self);
-        let mut out = StepOutput::new(&terms, psnr, n);
-        if let Some(guard) = &self.objective.guard {
-            out = out.synced();
-            let mut values: Vec<(String, f64)> = Term::ALL
-                .iter()
-                .zip(out.host_values())
-                .map(|(t, v)| (t.name().to_string(), v))
-                .collect();
-            values.push(("gradient L1".into(), gradient_l1(&grads, self)));
-            let fault = values
-                .iter()
-                .any(|(name, v)| name != Term::Psnr.name() && !v.is_finite());
-            if fault {
-                guard.fault(Fault {
-                    iteration: item.iteration,
-                    values,
-                });
-            }
-        }
+        let out = StepOutput::new(&terms, psnr, n);
+        let out = guarded(
+            self.objective.guard.as_ref(),
+            out,
+            item.iteration,
+            &grads,
+            self,
+        );
         TrainOutput { grads, item: out }
     }
+}
+
+/// A step's output checked by `guard` (when there is one): the loss terms and the
+/// gradients' L1 norm are read back (one small read per step) and a non-finite one is
+/// reported as a [`Fault`] at `iteration`, so that burn stops before the next checkpoint
+/// ([`super::stop`]). PSNR may be infinite (a perfect render) and is not checked. Both
+/// models' steps use it.
+pub fn guarded<M: Module>(
+    guard: Option<&StopControl>,
+    out: StepOutput,
+    iteration: usize,
+    grads: &GradientsParams,
+    module: &M,
+) -> StepOutput {
+    let Some(guard) = guard else {
+        return out;
+    };
+    let out = out.synced();
+    let mut values: Vec<(String, f64)> = Term::ALL
+        .iter()
+        .zip(out.host_values())
+        .map(|(t, v)| (t.name().to_string(), v))
+        .collect();
+    values.push(("gradient L1".into(), gradient_l1(grads, module)));
+    if values
+        .iter()
+        .any(|(name, v)| name != Term::Psnr.name() && !v.is_finite())
+    {
+        guard.fault(Fault { iteration, values });
+    }
+    out
 }
 
 /// The sum of the absolute values of every parameter's gradient (not finite when any
