@@ -366,6 +366,19 @@ impl DensityState {
         }
     }
 
+    /// The same parameters (ids kept) holding `stats`.
+    pub fn with_stats(&self, stats: Stats, device: &Device) -> Self {
+        let keep = |old: &Param<Tensor<1>>, v: Vec<f32>| {
+            Param::initialized(old.id, frozen(v, device).val()).set_require_grad(false)
+        };
+        Self {
+            grad_accum: keep(&self.grad_accum, stats.grad_accum),
+            denom: keep(&self.denom, stats.denom),
+            max_radii: keep(&self.max_radii, stats.max_radii),
+            face_scale: self.face_scale.clone(),
+        }
+    }
+
     /// The statistics on the host.
     pub fn stats(&self) -> Stats {
         Stats {
@@ -538,13 +551,7 @@ impl GaTraining {
             binding: Param::initialized(m.binding.id, fresh.binding.val()),
             sh_degree: m.sh_degree,
         };
-        let d = &self.density;
-        let density = DensityState {
-            grad_accum: keep(&d.grad_accum, frozen(stats.grad_accum, &device), false),
-            denom: keep(&d.denom, frozen(stats.denom, &device), false),
-            max_radii: keep(&d.max_radii, frozen(stats.max_radii, &device), false),
-            face_scale: d.face_scale.clone(),
-        };
+        let density = self.density.with_stats(stats, &device);
         Self {
             model,
             density,
@@ -673,33 +680,18 @@ impl TrainStep for GaTraining {
         if reset {
             grads.remove::<1>(me.model.opacity.id);
         }
-        let mut me = optim.step(lr, me.with_stats(stats, &device), grads);
+        me.density = me.density.with_stats(stats, &device);
+        let mut me = optim.step(lr, me, grads);
         if reset {
-            let (mut stored, binding) = me.model.to_stored();
-            density::reset_opacity(&mut stored.opacity_logits);
-            let n = stored.len();
-            let stats = me.density.stats();
-            me = me.replaced(&stored, &binding, stats);
-            let rows: Vec<Option<usize>> = (0..n).map(Some).collect();
-            *optim = edit_moments(optim, &[], &rows, Some(me.model.opacity.id));
+            // Only the opacities change: that parameter alone is replaced (id kept).
+            let mut logits = host1(me.model.opacity.val());
+            density::reset_opacity(&mut logits);
+            let id = me.model.opacity.id;
+            me.model.opacity =
+                Param::initialized(id, frozen(logits, &device).val()).set_require_grad(true);
+            *optim = edit_moments(optim, &[], &[], Some(id));
         }
         me
-    }
-}
-
-impl GaTraining {
-    fn with_stats(self, stats: Stats, device: &Device) -> Self {
-        let d = &self.density;
-        let keep = |old: &Param<Tensor<1>>, v: Vec<f32>| {
-            Param::initialized(old.id, frozen(v, device).val()).set_require_grad(false)
-        };
-        let density = DensityState {
-            grad_accum: keep(&d.grad_accum, stats.grad_accum),
-            denom: keep(&d.denom, stats.denom),
-            max_radii: keep(&d.max_radii, stats.max_radii),
-            face_scale: d.face_scale.clone(),
-        };
-        Self { density, ..self }
     }
 }
 
