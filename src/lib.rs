@@ -14,8 +14,9 @@
 //! 3. Learning and judging: [`metrics`] (losses and image metrics, with the pretrained VGG16
 //!    / AlexNet weights) → [`train`] (the objective and training through burn's learner) →
 //!    [`eval`] (the paper's evaluation protocol, tables, panels, curves).
-//! 4. Use: [`drive`] (motions, cameras, rendering, PLY export, frame-rate benchmark) and
-//!    [`demo`] (the whole pipeline as one command).
+//! 4. Use: [`drive`] (motions, cameras, rendering, PLY export, frame-rate benchmark),
+//!    [`view`] (driving an avatar live in a web browser) and [`demo`] (the whole pipeline
+//!    as one command).
 //!
 //! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`device`] (backend
 //! choice), [`io`] (npy / npz / PNG / pickle files) and [`error`] (errors that name the file
@@ -42,6 +43,7 @@ pub mod splat;
 pub mod synth;
 pub mod texel;
 pub mod train;
+pub mod view;
 
 pub use burn;
 pub use texavatars_kernels as kernels;

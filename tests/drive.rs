@@ -1,11 +1,14 @@
 //! `render`, `export ply` and `bench fps` on a tiny trained avatar (a tiny synthetic set, a
-//! few training iterations), with each kind of motion, and their errors on bad motions.
+//! few training iterations), with each kind of motion, and their errors on bad motions; and
+//! `view`, the live browser viewer (`drive/view.rs`).
 
 #[path = "common/cli.rs"]
 mod cli;
 #[path = "drive/gaussianavatars.rs"]
 mod gaussianavatars;
 mod tiny;
+#[path = "drive/view.rs"]
+mod view;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

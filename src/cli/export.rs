@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use crate::camera::CameraFile;
 use crate::cli::render::{DriveArgs, Driven, progress_bar};
 use crate::data::BACKGROUND;
-use crate::drive::{self, ExportStats, HostGaussians, outputs};
+use crate::drive::{self, ExportStats, outputs};
 use crate::io;
 use crate::splat::ply;
 
@@ -76,32 +76,7 @@ fn export_frames(a: &PlyArgs, d: &Driven) -> anyhow::Result<()> {
     for (k, (f, cam)) in d.motion.frames.iter().zip(&d.cameras).enumerate() {
         let i = d.first + k;
         let (rgb, g) = drive::render_frame(d.avatar.as_ref(), &f.conditioning, cam, &d.device)?;
-        let (mut p, stats) = match d.avatar.frame_ply(&f.conditioning) {
-            // The model's own world-space Gaussians (SH coefficients kept).
-            Some(p) => {
-                let p = p?;
-                let stats = ExportStats {
-                    gaussians: p.len(),
-                    ..Default::default()
-                };
-                (p, stats)
-            }
-            None => {
-                let host = |t: burn::tensor::Tensor<2>| -> Vec<f32> {
-                    t.into_data().iter::<f32>().collect()
-                };
-                let means = host(g.means);
-                let cov6 = host(g.cov6);
-                let colors = host(g.colors);
-                let opacities: Vec<f32> = g.opacities.into_data().iter::<f32>().collect();
-                drive::to_ply(&HostGaussians {
-                    means: &means,
-                    cov6: &cov6,
-                    colors: &colors,
-                    opacities: &opacities,
-                })?
-            }
-        };
+        let (mut p, stats) = drive::export::frame_ply(d.avatar.as_ref(), &f.conditioning, g)?;
         // Padded to --sh-degree; a model's own higher degree is kept.
         let degree = p.sh_degree.max(a.sh_degree.into());
         p.pad_sh_degree(degree)?;

@@ -11,6 +11,7 @@ pub mod splat;
 pub mod synth;
 pub mod train;
 pub mod uv;
+pub mod view;
 pub mod weights;
 
 use clap::{Parser, Subcommand};
@@ -62,6 +63,9 @@ pub enum Command {
     /// UV layouts of meshes.
     #[command(subcommand)]
     Uv(uv::UvCommand),
+    /// Drive a trained avatar live in a web browser: a local server with orbit camera,
+    /// expression and pose sliders, motion playback and ground truth.
+    View(view::ViewArgs),
     /// Pretrained VGG16 / AlexNet weights for the perceptual loss and LPIPS.
     #[command(subcommand)]
     Weights(weights::WeightsCommand),
@@ -86,6 +90,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Synth(a) => synth::run(a),
         Command::Train(a) => train::run(a),
         Command::Uv(c) => uv::run(c),
+        Command::View(a) => view::run(a),
         Command::Weights(c) => weights::run(c),
     }
 }

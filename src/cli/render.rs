@@ -13,7 +13,6 @@ use crate::device::BackendKind;
 use crate::drivable::{self, Drivable};
 use crate::drive::{self, CameraPath, Identity, Motion, MotionKind, RenderOptions, View};
 
-use crate::head::HeadAsset;
 use crate::limits;
 
 /// Camera paths on the command line.
@@ -133,20 +132,7 @@ impl DriveArgs {
     /// (frames, image buffers, the avatar) are checked as soon as they are known.
     pub fn load(&self) -> anyhow::Result<Driven> {
         self.check()?;
-        let head = match &self.head {
-            Some(p) => HeadAsset::load(p, None)?,
-            None => {
-                let synth_head = self
-                    .motion
-                    .parent()
-                    .map(|d| d.join("../head/head.npz"))
-                    .filter(|p| p.exists());
-                match synth_head {
-                    Some(p) => HeadAsset::load(&p, None)?,
-                    None => HeadAsset::embedded()?,
-                }
-            }
-        };
+        let head = drive::motion::head_for(self.head.as_deref(), Some(&self.motion))?;
         let device = self.backend.device();
         let loaded = drivable::load(&self.checkpoint, &head, &device)?;
         let avatar = loaded.avatar;

@@ -16,7 +16,10 @@
 
 use glam::{DMat3, DQuat, DVec3};
 
+use crate::data::Conditioning;
+use crate::drivable::Drivable;
 use crate::error::{Error, Result};
+use crate::splat::Gaussians;
 use crate::splat::ply::PlyGaussians;
 use crate::splat::sh::C0;
 
@@ -49,6 +52,35 @@ pub struct HostGaussians<'a> {
     pub cov6: &'a [f32],
     pub colors: &'a [f32],
     pub opacities: &'a [f32],
+}
+
+/// Frame `c`'s world-space Gaussians as a PLY: the model's own ([`Drivable::frame_ply`],
+/// e.g. GaussianAvatars' SH coefficients), else `g` (the frame's Gaussians from
+/// [`Drivable::frame_gaussians`], colours baked for its camera) through [`to_ply`].
+pub fn frame_ply(
+    avatar: &dyn Drivable,
+    c: &Conditioning,
+    g: Gaussians,
+) -> Result<(PlyGaussians, ExportStats)> {
+    if let Some(p) = avatar.frame_ply(c) {
+        let p = p?;
+        let stats = ExportStats {
+            gaussians: p.len(),
+            ..Default::default()
+        };
+        return Ok((p, stats));
+    }
+    let host = |t: burn::tensor::Tensor<2>| -> Vec<f32> { t.into_data().iter::<f32>().collect() };
+    let means = host(g.means);
+    let cov6 = host(g.cov6);
+    let colors = host(g.colors);
+    let opacities: Vec<f32> = g.opacities.into_data().iter::<f32>().collect();
+    to_ply(&HostGaussians {
+        means: &means,
+        cov6: &cov6,
+        colors: &colors,
+        opacities: &opacities,
+    })
 }
 
 /// Converts Gaussians to a degree-0 PLY; fails on wrong lengths or non-finite values.

@@ -69,7 +69,8 @@ impl FpsReport {
     }
 }
 
-fn sync(device: &Device) -> Result<()> {
+/// Waits for the device's queued work (so a stage's time is its own).
+pub fn sync(device: &Device) -> Result<()> {
     device
         .sync()
         .map_err(|e| Error::invalid("device", "sync", format!("{e:?}")))

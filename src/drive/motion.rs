@@ -32,7 +32,7 @@ use crate::data::dataset::{POSE_DIM, pose_conditioning};
 use crate::data::vhap::{self, ETA_DIM};
 use crate::data::{Conditioning, HeadDataset};
 use crate::error::{Error, Result};
-use crate::head::{HeadMeta, HeadModel, HeadPose};
+use crate::head::{HeadAsset, HeadMeta, HeadModel, HeadPose};
 use crate::io::npz::Npz;
 use crate::limits;
 
@@ -258,6 +258,23 @@ impl Motion {
         }
         self.frames = self.frames[range].to_vec();
         Ok(())
+    }
+}
+
+/// The head model of a driven avatar: `head` when given, else the head a dataset motion's
+/// export carries (`DATA/../head/head.npz`, as the synthetic benchmark writes), else the
+/// embedded default head.
+pub fn head_for(head: Option<&Path>, motion: Option<&Path>) -> Result<HeadAsset> {
+    if let Some(p) = head {
+        return HeadAsset::load(p, None);
+    }
+    let beside = motion
+        .and_then(|m| m.parent())
+        .map(|d| d.join("../head/head.npz"))
+        .filter(|p| p.exists());
+    match beside {
+        Some(p) => HeadAsset::load(&p, None),
+        None => HeadAsset::embedded(),
     }
 }
 

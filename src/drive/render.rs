@@ -247,11 +247,7 @@ fn render_frames(
 }
 
 fn to_rgb8(rgb: &[f32], w: usize, h: usize) -> Result<RgbImage> {
-    let bytes: Vec<u8> = rgb
-        .iter()
-        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-        .collect();
-    RgbImage::from_raw(w as u32, h as u32, bytes)
+    RgbImage::from_raw(w as u32, h as u32, io::image::to_bytes8(rgb))
         .ok_or_else(|| Error::invalid("render", "image", "size does not fit"))
 }
 

@@ -4,6 +4,42 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 
+/// Float values in [0, 1] (clamped) as bytes, rounded: how every image is written.
+pub fn to_bytes8(values: &[f32]) -> Vec<u8> {
+    values
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect()
+}
+
+/// An [H, W, 3] float image in [0, 1] encoded in memory as PNG, or as JPEG of `quality`
+/// (1-100) when `jpeg_quality` is given.
+pub fn encode_rgb(
+    width: usize,
+    height: usize,
+    rgb: &[f32],
+    jpeg_quality: Option<u8>,
+) -> Result<Vec<u8>> {
+    use image::ImageEncoder;
+    if rgb.len() != width * height * 3 {
+        return Err(Error::invalid(
+            "image",
+            "size",
+            format!("{} values for {width}x{height}x3", rgb.len()),
+        ));
+    }
+    let bytes = to_bytes8(rgb);
+    let mut out = Vec::new();
+    let (w, h, t) = (width as u32, height as u32, image::ExtendedColorType::Rgb8);
+    let r = match jpeg_quality {
+        Some(q) => image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q.clamp(1, 100))
+            .write_image(&bytes, w, h, t),
+        None => image::codecs::png::PngEncoder::new(&mut out).write_image(&bytes, w, h, t),
+    };
+    r.map_err(|e| Error::invalid("image", "encode", e.to_string()))?;
+    Ok(out)
+}
+
 /// Writes an [H, W] float image in [0, 1] (clamped, rounded) as an 8-bit grayscale PNG
 /// (a foreground mask), through a temporary file.
 pub fn write_gray_png(path: &Path, width: usize, height: usize, gray: &[f32]) -> Result<()> {
@@ -14,11 +50,7 @@ pub fn write_gray_png(path: &Path, width: usize, height: usize, gray: &[f32]) ->
             format!("{} values for {width}x{height}", gray.len()),
         ));
     }
-    let bytes: Vec<u8> = gray
-        .iter()
-        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-        .collect();
-    let buf = image::GrayImage::from_raw(width as u32, height as u32, bytes)
+    let buf = image::GrayImage::from_raw(width as u32, height as u32, to_bytes8(gray))
         .ok_or_else(|| Error::invalid(path.display().to_string(), "image", "size does not fit"))?;
     let tmp = path.with_extension("png.partial");
     buf.save_with_format(&tmp, image::ImageFormat::Png)
@@ -36,11 +68,7 @@ pub fn write_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Resul
             format!("{} values for {width}x{height}x3", rgb.len()),
         ));
     }
-    let bytes: Vec<u8> = rgb
-        .iter()
-        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-        .collect();
-    let buf = image::RgbImage::from_raw(width as u32, height as u32, bytes)
+    let buf = image::RgbImage::from_raw(width as u32, height as u32, to_bytes8(rgb))
         .ok_or_else(|| Error::invalid(path.display().to_string(), "image", "size does not fit"))?;
     let tmp = path.with_extension("png.partial");
     buf.save_with_format(&tmp, image::ImageFormat::Png)

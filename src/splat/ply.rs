@@ -440,6 +440,21 @@ pub fn write_bound(path: &Path, g: &PlyGaussians, binding: &[u32]) -> Result<()>
 }
 
 fn write_any(path: &Path, g: &PlyGaussians, binding: Option<&[u32]>) -> Result<()> {
+    let bytes = encode(g, binding);
+    let tmp = path.with_extension("ply.partial");
+    let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    f.write_all(&bytes)
+        .and_then(|_| f.sync_all())
+        .map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+/// The bytes [`write()`] puts in a file (e.g. for a download in `texavatars view`).
+pub fn to_bytes(g: &PlyGaussians) -> Vec<u8> {
+    encode(g, None)
+}
+
+fn encode(g: &PlyGaussians, binding: Option<&[u32]>) -> Vec<u8> {
     let n = g.len();
     let k = g.sh_coeffs();
     let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
@@ -480,13 +495,9 @@ fn write_any(path: &Path, g: &PlyGaussians, binding: Option<&[u32]>) -> Result<(
             put(b[i] as f32);
         }
     }
-    let tmp = path.with_extension("ply.partial");
-    let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    f.write_all(header.as_bytes())
-        .and_then(|_| f.write_all(&body))
-        .and_then(|_| f.sync_all())
-        .map_err(|e| Error::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+    let mut bytes = header.into_bytes();
+    bytes.extend_from_slice(&body);
+    bytes
 }
 
 /// Test helper: the property names and the rows of a binary little-endian PLY whose vertex
