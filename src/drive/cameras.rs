@@ -65,29 +65,19 @@ pub fn cameras(motion: &Motion, path: CameraPath, view: &View) -> Result<Vec<Cam
                      or `front`",
                 ));
             }
-            let mut all: Vec<usize> = motion
-                .frames
-                .iter()
-                .flat_map(|f| f.cameras.iter().map(|c| c.0))
-                .collect();
-            all.sort_unstable();
-            all.dedup();
+            let all = motion.camera_indices();
             let index = index.unwrap_or(all[all.len() / 2]);
             motion
                 .frames
                 .iter()
                 .map(|f| {
-                    f.cameras
-                        .iter()
-                        .find(|c| c.0 == index)
-                        .map(|c| c.1)
-                        .ok_or_else(|| {
-                            Error::invalid(
-                                &what,
-                                format!("timestep {}", f.timestep),
-                                format!("no camera {index} (cameras in the file: {all:?})"),
-                            )
-                        })
+                    f.camera(index).ok_or_else(|| {
+                        Error::invalid(
+                            &what,
+                            format!("timestep {}", f.timestep),
+                            format!("no camera {index} (cameras in the file: {all:?})"),
+                        )
+                    })
                 })
                 .collect()
         }
@@ -128,8 +118,8 @@ fn orbit(motion: &Motion, degrees: f32, view: &View) -> Result<Vec<Camera>> {
         .collect())
 }
 
-/// Centre of the bounding box.
-fn centre(v: &[[f32; 3]]) -> Vec3 {
+/// Centre of the bounding box of `v`.
+pub fn centre(v: &[[f32; 3]]) -> Vec3 {
     let mut lo = Vec3::splat(f32::INFINITY);
     let mut hi = Vec3::splat(f32::NEG_INFINITY);
     for p in v {

@@ -59,6 +59,13 @@ pub struct MotionFrame {
     pub cameras: Vec<(usize, Camera)>,
 }
 
+impl MotionFrame {
+    /// The dataset camera with `index` at this timestep.
+    pub fn camera(&self, index: usize) -> Option<Camera> {
+        self.cameras.iter().find(|c| c.0 == index).map(|c| c.1)
+    }
+}
+
 /// A loaded motion.
 #[derive(Clone, Debug)]
 pub struct Motion {
@@ -240,6 +247,18 @@ impl Motion {
             source: path.to_path_buf(),
             frames,
         })
+    }
+
+    /// The dataset camera indices of all frames, sorted, once each (empty for other kinds).
+    pub fn camera_indices(&self) -> Vec<usize> {
+        let mut all: Vec<usize> = self
+            .frames
+            .iter()
+            .flat_map(|f| f.cameras.iter().map(|c| c.0))
+            .collect();
+        all.sort_unstable();
+        all.dedup();
+        all
     }
 
     /// Keeps frames `range` (positions in the motion, end exclusive); errors when the range

@@ -21,6 +21,7 @@ use crate::data::vhap::ETA_DIM;
 use crate::data::{Conditioning, HeadDataset, Identity};
 use crate::device::BackendKind;
 use crate::drivable::{self, Drivable, ViewCache};
+use crate::drive::cameras::centre;
 use crate::drive::fps::sync;
 use crate::drive::{Motion, MotionKind};
 use crate::error::{Error, Result};
@@ -182,26 +183,17 @@ impl Scene {
                 PCA_EXPRESSION_RANGE
             },
             reads_eta: avatar.condition_width().is_some(),
-            motion: motion.as_ref().map(|m| {
-                let mut cameras: Vec<usize> = m
-                    .frames
-                    .iter()
-                    .flat_map(|f| f.cameras.iter().map(|c| c.0))
-                    .collect();
-                cameras.sort_unstable();
-                cameras.dedup();
-                MotionInfo {
-                    kind: match m.kind {
-                        MotionKind::Dataset => "dataset",
-                        MotionKind::Parameters => "parameters",
-                        MotionKind::Curves => "curves",
-                    }
-                    .into(),
-                    source: m.source.display().to_string(),
-                    frames: m.frames.len(),
-                    cameras,
-                    ground_truth: m.kind == MotionKind::Dataset,
+            motion: motion.as_ref().map(|m| MotionInfo {
+                kind: match m.kind {
+                    MotionKind::Dataset => "dataset",
+                    MotionKind::Parameters => "parameters",
+                    MotionKind::Curves => "curves",
                 }
+                .into(),
+                source: m.source.display().to_string(),
+                frames: m.frames.len(),
+                cameras: m.camera_indices(),
+                ground_truth: m.kind == MotionKind::Dataset,
             }),
             default_orbit: limits::DEFAULT_ORBIT,
             max_side: limits::MAX_SIDE,
@@ -356,10 +348,7 @@ impl Scene {
             CameraRequest::Preset(index) => {
                 let k = r.frame.or(r.eta_frame).unwrap_or(0);
                 let f = self.motion_frame(k, "camera.preset")?;
-                f.cameras
-                    .iter()
-                    .find(|c| c.0 == index)
-                    .map(|c| c.1)
+                f.camera(index)
                     .ok_or_else(|| {
                         Error::invalid(
                             "request",
@@ -482,17 +471,6 @@ pub fn psnr(a: &[f32], b: &[f32]) -> Option<f64> {
 
 fn ms(d: std::time::Duration) -> f64 {
     d.as_secs_f64() * 1e3
-}
-
-/// Centre of the bounding box.
-fn centre(v: &[[f32; 3]]) -> Vec3 {
-    let mut lo = Vec3::splat(f32::INFINITY);
-    let mut hi = Vec3::splat(f32::NEG_INFINITY);
-    for p in v {
-        lo = lo.min(Vec3::from(*p));
-        hi = hi.max(Vec3::from(*p));
-    }
-    0.5 * (lo + hi)
 }
 
 #[cfg(test)]
