@@ -41,7 +41,8 @@ class Browser:
             os.dup2(res_w, 4)
 
         self.proc = subprocess.Popen(
-            [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+            [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+             "--no-first-run",
              f"--window-size={width},{height}", "--remote-debugging-pipe",
              f"--user-data-dir={self.profile}", "about:blank"],
             preexec_fn=fds, close_fds=False,

@@ -361,6 +361,8 @@ impl Browser {
                 "--headless=new",
                 "--no-sandbox",
                 "--disable-gpu",
+                // Containers often have a small /dev/shm; Chromium then crashes without this.
+                "--disable-dev-shm-usage",
                 "--no-first-run",
                 "--window-size=900,700",
                 "--remote-debugging-port=0",
