@@ -354,7 +354,10 @@ struct Browser {
 }
 
 impl Browser {
-    fn launch(exe: &PathBuf, url: &str) -> Browser {
+    /// Starts Chromium and opens `url` in a new tab. `Err` when the browser itself does
+    /// not come up (no DevTools address within a minute): an environment problem, not the
+    /// viewer's, reported by the caller.
+    fn launch(exe: &PathBuf, url: &str) -> Result<Browser, String> {
         let profile = super::tmp("chromium-profile");
         let mut child = Command::new(exe)
             .args([
@@ -372,21 +375,36 @@ impl Browser {
             .stderr(Stdio::piped())
             .stdout(Stdio::null())
             .spawn()
-            .expect("chromium starts");
+            .map_err(|e| format!("{}: {e}", exe.display()))?;
         let stderr = child.stderr.take().expect("stderr");
-        let mut lines = BufReader::new(stderr).lines();
+        // Read stderr on a thread (kept draining it so the browser never blocks on it) and
+        // hand over the DevTools address.
+        let (tx, rx) = std::sync::mpsc::channel::<String>();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                let _ = tx.send(line);
+            }
+        });
+        let mut seen = Vec::new();
+        let deadline = Instant::now() + Duration::from_secs(60);
         let ws = loop {
-            let line = lines
-                .next()
-                .expect("chromium prints its DevTools address")
-                .expect("stderr");
-            if let Some(at) = line.find("ws://") {
-                break line[at..].trim().to_string();
+            let left = deadline.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(left) {
+                Ok(line) => match line.find("ws://") {
+                    Some(at) => break line[at..].trim().to_string(),
+                    None => seen.push(line),
+                },
+                Err(_) => {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    return Err(format!(
+                        "no DevTools address within a minute; stderr: {}",
+                        seen.join(" | ")
+                    ));
+                }
             }
         };
-        // Keep draining stderr so the browser never blocks on it.
-        std::thread::spawn(move || lines.for_each(drop));
-        let (socket, _) = tungstenite::connect(ws).expect("DevTools socket");
+        let (socket, _) = tungstenite::connect(ws).map_err(|e| format!("DevTools socket: {e}"))?;
         let mut b = Browser {
             child,
             socket,
@@ -402,7 +420,7 @@ impl Browser {
             false,
         );
         b.session = attached["sessionId"].as_str().expect("session").to_string();
-        b
+        Ok(b)
     }
 
     fn call(&mut self, method: &str, params: Value, in_page: bool) -> Value {
@@ -471,7 +489,13 @@ fn in_headless_chromium_a_slider_changes_the_face() {
         return;
     };
     let v = start(None);
-    let mut b = Browser::launch(&exe, &v.url());
+    let mut b = match Browser::launch(&exe, &v.url()) {
+        Ok(b) => b,
+        Err(why) => {
+            eprintln!("skipped: {} did not start: {why}", exe.display());
+            return;
+        }
+    };
     b.until("!!(window.viewer && window.viewer.ready && window.viewer.framesShown >= 1)");
     // The render's box on the page, in CSS pixels (the screenshot's scale is 1).
     let rect = b.eval(
