@@ -147,7 +147,9 @@ impl Scene {
         };
         let dataset = match &motion {
             Some(m) if m.kind == MotionKind::Dataset => {
-                let ds = HeadDataset::from_transforms(&m.source, Arc::new(head.model.clone()))?;
+                // Cached: a ground-truth frame reads its image, not the timestep's mesh again.
+                let ds = HeadDataset::from_transforms(&m.source, Arc::new(head.model.clone()))?
+                    .with_cache(true);
                 let at = ds
                     .frames()
                     .iter()
