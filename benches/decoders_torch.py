@@ -7,7 +7,7 @@ output channel; untied biases on the transposed convolutions when "untied_bias" 
 LeakyReLU 0.2 after every layer but the last of each decoder), then times, at batch 1, the
 forward pass alone (under no_grad) and forward + backward of sum(maps * w).
 
-    python3 benches/decoders_torch.py [--config cpu|tiny|paper] [--threads N] [--runs 5]
+    python3 benches/decoders_torch.py [--config cpu|tiny|paper] [--threads N] [--runs 5] [--json]
 
 The thread count defaults to the number of CPUs, which is what burn's CPU backends use.
 """
@@ -137,6 +137,8 @@ def main():
     p.add_argument("--config", default="cpu")
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--runs", type=int, default=5)
+    p.add_argument("--json", action="store_true",
+                   help="one JSON line (median_ms: forward + backward), for benches/cpu_vs_torch.rs")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -160,6 +162,12 @@ def main():
         (net(cond, pluecker) * w).sum().backward()
         net.exp2code.v.grad.sum().item()
 
+    if args.json:
+        fwd_bwd = timings_ms(forward_backward, args.runs)
+        print(json.dumps({"what": "decoders forward+backward", "config": args.config,
+                          "threads": args.threads, "torch": torch.__version__,
+                          "median_ms": fwd_bwd[0], "min_ms": fwd_bwd[1], "runs": args.runs}))
+        return
     fwd = timings_ms(forward, args.runs)
     fwd_bwd = timings_ms(forward_backward, args.runs)
     print(

@@ -32,6 +32,7 @@ pub mod drive;
 pub mod error;
 pub mod eval;
 pub mod gaussianavatars;
+pub mod gemm;
 pub mod head;
 pub mod io;
 pub mod lift;

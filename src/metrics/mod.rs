@@ -11,6 +11,7 @@ pub mod lpips;
 pub mod nets;
 pub mod perceptual;
 pub mod ssim;
+pub mod vgg_cpu;
 pub mod weights;
 
 use burn::tensor::{Device, Tensor, TensorData};

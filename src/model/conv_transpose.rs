@@ -40,6 +40,7 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvTransposeOptions;
 use rayon::prelude::*;
 
+use crate::gemm::matmul;
 use crate::splat::backend::{HostIo, floats};
 
 /// Stride and padding of a transposed convolution (dilation 1, one group, no output
@@ -180,75 +181,6 @@ impl Dims {
     /// Rows of the column matrix (C_out · k_h · k_w).
     fn q(&self) -> usize {
         self.co * self.kh * self.kw
-    }
-}
-
-/// Work (multiply-adds) above which a product is split across rayon's threads.
-const PARALLEL_WORK: usize = 1 << 16;
-
-/// `dst[m×n] (+)= lhs[m×k] · rhs[k×n]` with explicit (row, column) strides.
-#[allow(clippy::too_many_arguments)]
-fn matmul(
-    [m, n, k]: [usize; 3],
-    dst: &mut [f32],
-    [dst_rs, dst_cs]: [usize; 2],
-    accumulate: bool,
-    lhs: &[f32],
-    [lhs_rs, lhs_cs]: [usize; 2],
-    rhs: &[f32],
-    [rhs_rs, rhs_cs]: [usize; 2],
-) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    if k == 0 {
-        if !accumulate {
-            dst.fill(0.0);
-        }
-        return;
-    }
-    let last = |rs: usize, cs: usize, r: usize, c: usize| (r - 1) * rs + (c - 1) * cs;
-    assert!(
-        last(dst_rs, dst_cs, m, n) < dst.len(),
-        "matmul: dst too short"
-    );
-    assert!(
-        last(lhs_rs, lhs_cs, m, k) < lhs.len(),
-        "matmul: lhs too short"
-    );
-    assert!(
-        last(rhs_rs, rhs_cs, k, n) < rhs.len(),
-        "matmul: rhs too short"
-    );
-    let parallelism = if m * n * k >= PARALLEL_WORK {
-        gemm::Parallelism::Rayon(0)
-    } else {
-        gemm::Parallelism::None
-    };
-    // SAFETY: the asserts above keep every element the strides address inside its slice;
-    // `dst` is borrowed mutably and does not alias `lhs` or `rhs`.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            dst_cs as isize,
-            dst_rs as isize,
-            accumulate,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            parallelism,
-        );
     }
 }
 

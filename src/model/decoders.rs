@@ -66,10 +66,7 @@ fn up(
 fn chain(layers: &[WnConvTranspose2d], mut x: Tensor<4>, last_linear: bool) -> Tensor<4> {
     let n = layers.len();
     for (i, layer) in layers.iter().enumerate() {
-        x = layer.forward(x);
-        if !(last_linear && i + 1 == n) {
-            x = leaky_relu(x);
-        }
+        x = layer.forward_act(x, !(last_linear && i + 1 == n));
     }
     x
 }
@@ -165,7 +162,7 @@ impl ViewEncoder {
     pub fn forward(&self, pluecker: Tensor<4>) -> Tensor<4> {
         self.convs
             .iter()
-            .fold(pluecker, |x, conv| leaky_relu(conv.forward(x)))
+            .fold(pluecker, |x, conv| conv.forward_act(x, true))
     }
 
     /// Folds the weight norms for inference ([`WnConv2d::fold`]).
@@ -306,10 +303,7 @@ impl AppearanceDecoder {
     pub fn forward(&self, code: Tensor<4>, view: Tensor<4>) -> Tensor<4> {
         let x = chain(&self.before_view, code, false);
         let x = Tensor::cat(vec![x, view], 1);
-        let x = self
-            .mid
-            .iter()
-            .fold(x, |x, conv| leaky_relu(conv.forward(x)));
+        let x = self.mid.iter().fold(x, |x, conv| conv.forward_act(x, true));
         chain(&self.after_view, x, true)
     }
 

@@ -28,6 +28,7 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 
+use super::bias_act::bias_act;
 use super::constants::LEAKY_RELU_SLOPE;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
 
@@ -139,22 +140,17 @@ fn init_bias(kind: &Bias, c_out: usize, fan_in: usize, device: &Device) -> Biase
     }
 }
 
-/// Adds an untied bias [C, H, W] to `y` [N, C, H, W].
-fn add_untied(y: Tensor<4>, bias: &Option<Param<Tensor<3>>>, layer: &str) -> Tensor<4> {
-    match bias {
-        None => y,
-        Some(b) => {
-            let b = b.val();
-            let [_, c, h, w] = y.dims();
-            assert_eq!(
-                b.dims(),
-                [c, h, w],
-                "{layer}: the untied bias is {:?} but the output is [N, {c}, {h}, {w}]; the layer \
-                 only runs at the resolution it was built for",
-                b.dims()
-            );
-            y + b.unsqueeze::<4>()
-        }
+/// Checks that an untied bias [C, H, W] matches `y` [N, C, H, W].
+fn check_untied(y: &Tensor<4>, bias: &Option<Param<Tensor<3>>>, layer: &str) {
+    if let Some(b) = bias {
+        let dims = b.dims();
+        let [_, c, h, w] = y.dims();
+        assert_eq!(
+            dims,
+            [c, h, w],
+            "{layer}: the untied bias is {dims:?} but the output is [N, {c}, {h}, {w}]; the layer \
+             only runs at the resolution it was built for",
+        );
     }
 }
 
@@ -249,7 +245,7 @@ pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
     /// ([C_in, C_out, k_h, k_w]). `fan_in` is the other one times `k_h k_w`.
     const OUT_DIM: usize;
 
-    /// The layer's operation, before its untied bias.
+    /// The layer's operation, before its bias.
     ///
     /// # Shapes
     /// - `x`: [N, C_in, H, W]
@@ -272,8 +268,7 @@ impl ConvKind for Plain {
 
     fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
         let options = ConvOptions::new(layer.stride, layer.padding, [1, 1], 1);
-        let bias = layer.bias.as_ref().map(|b| b.val());
-        conv2d(x, layer.effective_weight(), bias, options)
+        conv2d(x, layer.effective_weight(), None, options)
     }
 }
 
@@ -286,11 +281,7 @@ impl ConvKind for Transposed {
             stride: layer.stride,
             padding: layer.padding,
         };
-        let y = conv_transpose2d(x, layer.effective_weight(), p);
-        match &layer.bias {
-            Some(b) => y + b.val().reshape([1, -1, 1, 1]),
-            None => y,
-        }
+        conv_transpose2d(x, layer.effective_weight(), p)
     }
 }
 
@@ -442,7 +433,26 @@ impl<K: ConvKind> WnConv<K> {
     /// - `x`: [N, C_in, H, W]
     /// - returns [N, C_out, H_out, W_out] ([`Plain`] and [`Transposed`] give `H_out`)
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        add_untied(K::apply(x, self), &self.untied_bias, K::NAME)
+        self.forward_act(x, false)
+    }
+
+    /// [`Self::forward`] followed by the networks' LeakyReLU when `act`, the bias and the
+    /// activation as one op ([`bias_act`]).
+    ///
+    /// # Shapes
+    /// As [`Self::forward`].
+    ///
+    /// # Panics
+    /// When an untied bias does not match the output's resolution.
+    pub fn forward_act(&self, x: Tensor<4>, act: bool) -> Tensor<4> {
+        let y = K::apply(x, self);
+        check_untied(&y, &self.untied_bias, K::NAME);
+        match (&self.bias, &self.untied_bias) {
+            (_, Some(b)) => bias_act(y, b.val(), act),
+            (Some(b), None) => bias_act(y, b.val(), act),
+            (None, None) if act => leaky_relu(y),
+            (None, None) => y,
+        }
     }
 }
 

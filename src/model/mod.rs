@@ -8,6 +8,7 @@
 //! constants that are not sizes are in [`constants`].
 
 pub mod avatar;
+pub mod bias_act;
 pub mod constants;
 pub mod conv_transpose;
 pub mod decoders;

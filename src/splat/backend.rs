@@ -162,7 +162,7 @@ impl HostIo for NdArray {
     }
 }
 
-fn read_floats<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
+pub(crate) fn read_floats<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
     let data = burn::tensor::try_read_sync(B::float_into_data(t))
         .expect("synchronous read-back is supported on CPU backends")
         .expect("reading a CPU tensor cannot fail");
