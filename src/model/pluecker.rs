@@ -135,11 +135,81 @@ pub fn view_input(camera: &Camera, square_res: usize, res: usize) -> Result<Plue
             format!("{square_res} is not the input side {res} times a power of two"),
         ));
     }
+    let key = CacheKey::new(camera, square_res, res);
+    if let Some(map) = cache_get(&key) {
+        return Ok(map);
+    }
+    let map = build_view_input(camera, square_res, res);
+    cache_put(key, &map);
+    Ok(map)
+}
+
+/// [`view_input`] without the cache, the sides already checked.
+fn build_view_input(camera: &Camera, square_res: usize, res: usize) -> PlueckerMap {
     let mut map = PlueckerMap::of_camera(camera).resize_bilinear(square_res, square_res);
     while map.height > res {
         map = map.resize_bilinear(map.height / 2, map.width / 2);
     }
-    Ok(map)
+    map
+}
+
+/// Maps kept by [`view_input`]: a training run asks for the same few cameras every step,
+/// and building one map (every pixel's ray at image size, then 2-3 resamplings) costs about
+/// as much as a third of a `cpu`-config decoder pass. 32 maps of 6 x 128^2 floats are 12 MB.
+const CACHED_MAPS: usize = 32;
+
+/// A camera's bits and the two sides: equal keys give bit-identical maps.
+#[derive(Clone, PartialEq, Eq, Hash)]
+struct CacheKey {
+    bits: [u32; 22],
+    square_res: usize,
+    res: usize,
+}
+
+impl CacheKey {
+    fn new(camera: &Camera, square_res: usize, res: usize) -> Self {
+        let mut bits = [0u32; 22];
+        bits[0] = camera.width;
+        bits[1] = camera.height;
+        let floats = [camera.fx, camera.fy, camera.cx, camera.cy];
+        for (b, f) in bits[2..6].iter_mut().zip(floats) {
+            *b = f.to_bits();
+        }
+        for (b, f) in bits[6..]
+            .iter_mut()
+            .zip(camera.world_to_camera.iter().flatten())
+        {
+            *b = f.to_bits();
+        }
+        CacheKey {
+            bits,
+            square_res,
+            res,
+        }
+    }
+}
+
+type MapCache = std::collections::HashMap<CacheKey, std::sync::Arc<PlueckerMap>>;
+
+fn cache() -> &'static std::sync::Mutex<MapCache> {
+    static CACHE: std::sync::OnceLock<std::sync::Mutex<MapCache>> = std::sync::OnceLock::new();
+    CACHE.get_or_init(Default::default)
+}
+
+fn cache_get(key: &CacheKey) -> Option<PlueckerMap> {
+    // A poisoned lock only means another thread panicked mid-insert; the map is still valid.
+    let guard = cache().lock().unwrap_or_else(|e| e.into_inner());
+    guard.get(key).map(|m| PlueckerMap::clone(m))
+}
+
+fn cache_put(key: CacheKey, map: &PlueckerMap) {
+    let mut guard = cache().lock().unwrap_or_else(|e| e.into_inner());
+    if guard.len() >= CACHED_MAPS {
+        // A viewer orbiting the head asks for a new camera every frame: start over rather
+        // than keep an eviction order (rebuilding one map is cheap next to a frame).
+        guard.clear();
+    }
+    guard.insert(key, std::sync::Arc::new(map.clone()));
 }
 
 /// The view encoder's input for a batch of cameras, on `device`.
@@ -209,6 +279,37 @@ mod tests {
         let u = m.resize_bilinear(1, 4);
         let row: Vec<f32> = (0..4).map(|x| u.at(0, 0, x)).collect();
         assert_eq!(row, vec![0.0, 0.25, 0.75, 1.0]);
+    }
+
+    #[test]
+    fn cached_view_inputs_match_fresh_ones_per_camera() {
+        let cam = |tx: f32, cx: f32| Camera {
+            width: 40,
+            height: 24,
+            fx: 30.0,
+            fy: 31.0,
+            cx,
+            cy: 12.5,
+            world_to_camera: [
+                [1.0, 0.0, 0.0, tx],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 2.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ],
+        };
+        let cams = [cam(0.1, 20.0), cam(0.1, 20.5), cam(-0.3, 20.0)];
+        for _ in 0..2 {
+            for c in &cams {
+                for (square, res) in [(32, 8), (16, 8)] {
+                    let got = view_input(c, square, res).expect("valid sides");
+                    assert_eq!(got, build_view_input(c, square, res));
+                }
+            }
+        }
+        // Cameras differing in one value only get maps of their own.
+        let a = view_input(&cams[0], 32, 8).expect("valid sides");
+        let b = view_input(&cams[1], 32, 8).expect("valid sides");
+        assert_ne!(a, b);
     }
 
     #[test]
