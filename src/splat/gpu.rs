@@ -361,27 +361,38 @@ pub fn backward_with_options(
         (1, isect_len * GRAD2D_STRIDE as usize)
     };
     let dummy = ctx.zeros(1);
-    // SAFETY: one workgroup per tile; all buffers hold the lengths passed.
-    unsafe {
-        rasterize_backward::launch_unchecked(
-            &ctx.client,
-            frame.tile_grid(),
-            frame.tile_dim(),
-            arg(&projected.handle, n * PROJECTED_STRIDE as usize),
-            arg(&colors.handle, n * 3),
-            arg(&isect_ids.handle, isect_len),
-            arg(&tile_ranges.handle, frame.num_tiles() * 2),
-            arg(&cam, CAMERA_LEN),
-            arg(&out.handle, pixels * 4),
-            arg(&last.handle, pixels),
-            arg(&grad_out.handle, pixels * 4),
-            arg(if float_atomics { &grad2d } else { &dummy }, grad2d_len),
-            arg(&slots, slots_len),
-            frame.width,
-            frame.height,
-            frame.tiles_x,
-            float_atomics,
-        );
+    // The slot variant binds `grad2d` as plain floats, so its shader holds no float atomic
+    // (see `rasterize_backward`'s module documentation).
+    macro_rules! launch_backward {
+        ($cell:ty, $grad2d:expr) => {
+            // SAFETY: one workgroup per tile; all buffers hold the lengths passed.
+            unsafe {
+                rasterize_backward::launch_unchecked::<$cell>(
+                    &ctx.client,
+                    frame.tile_grid(),
+                    frame.tile_dim(),
+                    arg(&projected.handle, n * PROJECTED_STRIDE as usize),
+                    arg(&colors.handle, n * 3),
+                    arg(&isect_ids.handle, isect_len),
+                    arg(&tile_ranges.handle, frame.num_tiles() * 2),
+                    arg(&cam, CAMERA_LEN),
+                    arg(&out.handle, pixels * 4),
+                    arg(&last.handle, pixels),
+                    arg(&grad_out.handle, pixels * 4),
+                    arg($grad2d, grad2d_len),
+                    arg(&slots, slots_len),
+                    frame.width,
+                    frame.height,
+                    frame.tiles_x,
+                    float_atomics,
+                )
+            }
+        };
+    }
+    if float_atomics {
+        launch_backward!(Atomic<f32>, &grad2d);
+    } else {
+        launch_backward!(f32, &dummy);
     }
 
     if !float_atomics {

@@ -16,9 +16,14 @@
 //! the workgroup only walks up to the largest `last` of its pixels.
 //!
 //! Per-Gaussian accumulation of the nine screen-space gradients has two variants, chosen at
-//! compile time by `float_atomics`:
-//! - `true`: every contributing pixel adds into `grad2d[g]` with `Atomic<f32>::fetch_add`.
-//! - `false` (devices without float atomics): for every intersection the workgroup sums its
+//! compile time by `float_atomics` together with the element type `G` of `grad2d`:
+//! - `true`, `G = Atomic<f32>`: every contributing pixel adds into `grad2d[g]` with
+//!   `Atomic<f32>::fetch_add`.
+//! - `false`, `G = f32` (devices without float atomics): `grad2d` is a plain one-entry dummy,
+//!   so the generated shader declares no `atomic<f32>` at all (CubeCL binds every argument,
+//!   used or not, and WGSL validation rejects an `atomic<f32>` binding on adapters without
+//!   float atomics; `tests/gpu/wgsl.rs` validates both variants with naga). For every
+//!   intersection the workgroup sums its
 //!   pixels' contributions in shared memory (fixed order, deterministic) and one thread
 //!   writes the sum to the intersection's own slot `grad_slots[isect]` (every
 //!   `(tile, Gaussian)` pair is unique, so no two workgroups write the same slot). Slots of
@@ -30,7 +35,7 @@
 //! - `gaussian_from_isect`: `[M]` u32, `tile_ranges`: `[tiles, 2]` u32.
 //! - `cam`: `[CAMERA_LEN]`.
 //! - `out`: `[H, W, 4]` (forward output), `last`: `[H, W]` u32, `grad_out`: `[H, W, 4]`.
-//! - `grad2d`: `[N, GRAD2D_STRIDE]` (atomic variant; a dummy otherwise).
+//! - `grad2d`: `[N, GRAD2D_STRIDE]` (atomic variant; a one-entry dummy otherwise).
 //! - `grad_slots`: `[M, GRAD2D_STRIDE]` (slot variant; a dummy otherwise).
 
 use cubecl::prelude::*;
@@ -50,11 +55,36 @@ const REDUCE_SEGMENTS: u32 = 16;
 /// Pixels summed serially per segment.
 const REDUCE_SEGMENT_LEN: u32 = TILE_PIXELS / REDUCE_SEGMENTS;
 
+/// An element of `rasterize_backward`'s `grad2d`: `Atomic<f32>` adds into it (the
+/// float-atomic variant); `f32` is the slot variant's dummy, never added to.
+#[cube]
+pub trait GradCell: CubePrimitive {
+    /// Adds `value` to `cells[index]`.
+    fn add_grad(cells: &mut [Self], index: usize, value: f32);
+}
+
+#[cube]
+impl GradCell for Atomic<f32> {
+    fn add_grad(cells: &mut [Self], index: usize, value: f32) {
+        cells[index].fetch_add(value);
+    }
+}
+
+#[cube]
+impl GradCell for f32 {
+    fn add_grad(cells: &mut [Self], index: usize, value: f32) {
+        // Only reached with `float_atomics` (which launches with `Atomic<f32>`); a plain
+        // add keeps the function total.
+        cells[index] += value;
+    }
+}
+
 /// See the module documentation. Launch with a `(tiles_x, tiles_y)` grid of
-/// `(TILE_SIZE, TILE_SIZE)` workgroups.
+/// `(TILE_SIZE, TILE_SIZE)` workgroups; `G = Atomic<f32>` with `float_atomics`, `G = f32`
+/// without.
 #[allow(clippy::too_many_arguments)]
 #[cube(launch_unchecked)]
-pub fn rasterize_backward(
+pub fn rasterize_backward<G: GradCell>(
     projected: &[f32],
     colors: &[f32],
     gaussian_from_isect: &[u32],
@@ -63,7 +93,7 @@ pub fn rasterize_backward(
     out: &[f32],
     last: &[u32],
     grad_out: &[f32],
-    grad2d: &mut [Atomic<f32>],
+    grad2d: &mut [G],
     grad_slots: &mut [f32],
     width: u32,
     height: u32,
@@ -213,15 +243,15 @@ pub fn rasterize_backward(
             if float_atomics {
                 if contributes {
                     let base = (s_gaussian[t] * GRAD2D_STRIDE) as usize;
-                    grad2d[base].fetch_add(d_u);
-                    grad2d[base + 1].fetch_add(d_v);
-                    grad2d[base + 2].fetch_add(d_a);
-                    grad2d[base + 3].fetch_add(d_b);
-                    grad2d[base + 4].fetch_add(d_c);
-                    grad2d[base + 5].fetch_add(d_red);
-                    grad2d[base + 6].fetch_add(d_green);
-                    grad2d[base + 7].fetch_add(d_blue);
-                    grad2d[base + 8].fetch_add(d_opacity);
+                    G::add_grad(grad2d, base, d_u);
+                    G::add_grad(grad2d, base + 1, d_v);
+                    G::add_grad(grad2d, base + 2, d_a);
+                    G::add_grad(grad2d, base + 3, d_b);
+                    G::add_grad(grad2d, base + 4, d_c);
+                    G::add_grad(grad2d, base + 5, d_red);
+                    G::add_grad(grad2d, base + 6, d_green);
+                    G::add_grad(grad2d, base + 7, d_blue);
+                    G::add_grad(grad2d, base + 8, d_opacity);
                 }
             } else {
                 let p = tid as usize;

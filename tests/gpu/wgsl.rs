@@ -1,0 +1,445 @@
+//! The WGSL that CubeCL generates for every custom kernel, validated with naga (the validator
+//! wgpu runs before it creates a pipeline) against the capabilities of an adapter *without*
+//! float atomics (DX12, browsers' WebGPU, older Apple GPUs). No device is needed: the kernel
+//! definitions go through CubeCL's WGSL compiler (`cubecl::wgpu::WgslCompiler`, the one
+//! `cubecl-wgpu` uses on every backend this crate builds), and the text is what wgpu would
+//! receive.
+//!
+//! The float-atomic variant of the backward rasterizer must *fail* the same validation (it
+//! declares `array<atomic<f32>>`) and pass with the capability: that shows the check can see
+//! the difference, so the slot variant's pass means something.
+
+use std::sync::Arc;
+
+use burn_cubecl::cubecl::Compiler as _;
+use burn_cubecl::cubecl::ir::features::Features;
+use burn_cubecl::cubecl::ir::{DeviceIdentity, HardwareProperties, MemoryDeviceProperties};
+use burn_cubecl::cubecl::prelude::*;
+use burn_cubecl::cubecl::wgpu::WgslCompiler;
+use burn_cubecl::cubecl::{WgpuCompilationOptions, profile::TimingMethod};
+use naga::valid::{Capabilities, ValidationFlags, Validator};
+use texavatars_kernels::lift::blend::blend;
+use texavatars_kernels::lift::bwd::frames::face_frames_backward;
+use texavatars_kernels::lift::bwd::transform::lift_rows_backward;
+use texavatars_kernels::lift::csr_gather::csr_gather;
+use texavatars_kernels::lift::frames::face_frames;
+use texavatars_kernels::lift::opacity_grad::opacity_grad;
+use texavatars_kernels::lift::transform::lift_rows;
+use texavatars_kernels::splat::bwd::project::project_backward;
+use texavatars_kernels::splat::bwd::rasterize::rasterize_backward;
+use texavatars_kernels::splat::bwd::sum_slots::sum_slots;
+use texavatars_kernels::splat::emit_intersections::emit_intersections;
+use texavatars_kernels::splat::fill::fill_u32;
+use texavatars_kernels::splat::gather::gather_u32;
+use texavatars_kernels::splat::iota::iota_u32;
+use texavatars_kernels::splat::project::project;
+use texavatars_kernels::splat::radix_sort::histogram::radix_histogram;
+use texavatars_kernels::splat::radix_sort::scatter::radix_scatter;
+use texavatars_kernels::splat::rasterize::rasterize;
+use texavatars_kernels::splat::scan::add_block_offsets::scan_add_block_offsets;
+use texavatars_kernels::splat::scan::blocks::scan_blocks;
+use texavatars_kernels::splat::tile_ranges::segment_ranges;
+
+/// A device description for compiling offline: the limits of a common desktop adapter (the
+/// WGSL compiler only reads them for features this crate's kernels do not use).
+fn props() -> Arc<DeviceProperties> {
+    Arc::new(DeviceProperties::new(
+        Features::default(),
+        MemoryDeviceProperties::new(u64::MAX, 256),
+        HardwareProperties {
+            load_width: 128,
+            vector_register_count: None,
+            plane_size_min: 32,
+            plane_size_max: 32,
+            max_bindings: 32,
+            max_shared_memory_size: 32768,
+            max_cube_count: (65535, 65535, 65535),
+            max_units_per_cube: 256,
+            max_cube_dim: (256, 256, 64),
+            num_streaming_multiprocessors: None,
+            num_tensor_cores: None,
+            min_tensor_cores_dim: None,
+            num_cpu_cores: None,
+            last_level_cache_size: None,
+            max_vector_size: VectorSize::MAX,
+            cube_mma_reserved_shared_memory: 0,
+        },
+        TimingMethod::System,
+        DeviceIdentity {
+            name: "offline".into(),
+            fingerprint: "offline".into(),
+            physical: None,
+        },
+    ))
+}
+
+fn settings(dim: CubeDim) -> KernelSettings {
+    KernelSettings::new(*dim, ExecutionMode::Unchecked, AddressType::U32)
+}
+
+fn tile() -> KernelSettings {
+    settings(CubeDim::new_2d(16, 16))
+}
+
+fn line() -> KernelSettings {
+    settings(CubeDim::new_1d(256))
+}
+
+fn buf() -> BufferCompilationArg {
+    BufferCompilationArg { inplace: None }
+}
+
+/// The WGSL text of a kernel definition.
+fn wgsl(def: KernelDefinition) -> String {
+    WgslCompiler
+        .compile(def, &WgpuCompilationOptions::default())
+        .expect("CubeCL compiles the kernel to WGSL")
+        .to_string()
+}
+
+/// Parses and validates WGSL as wgpu does, with `caps`; the error names the line.
+fn validate(src: &str, caps: Capabilities) -> Result<(), String> {
+    let module = naga::front::wgsl::parse_str(src).map_err(|e| e.emit_to_string(src))?;
+    Validator::new(ValidationFlags::all(), caps)
+        .validate(&module)
+        .map(|_| ())
+        .map_err(|e| e.emit_to_string(src))
+}
+
+/// Everything an adapter may offer except float atomics.
+fn without_float_atomics() -> Capabilities {
+    Capabilities::all() - Capabilities::SHADER_FLOAT32_ATOMIC
+}
+
+/// Every kernel a training step launches on an adapter without float atomics, by name.
+fn kernels_without_float_atomics() -> Vec<(&'static str, String)> {
+    let (p, t) = (props, || Arc::new(TargetProperties::default()));
+    let b = buf;
+    vec![
+        (
+            "project",
+            wgsl(
+                project::Project::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                    (),
+                )
+                .define(),
+            ),
+        ),
+        (
+            "emit_intersections",
+            wgsl(
+                emit_intersections::EmitIntersections::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                )
+                .define(),
+            ),
+        ),
+        (
+            "radix_histogram",
+            wgsl(
+                radix_histogram::RadixHistogram::new(line(), p(), t(), b(), b(), (), (), ())
+                    .define(),
+            ),
+        ),
+        (
+            "radix_scatter",
+            wgsl(
+                radix_scatter::RadixScatter::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                    (),
+                )
+                .define(),
+            ),
+        ),
+        (
+            "fill_u32",
+            wgsl(fill_u32::FillU32::new(line(), p(), t(), b(), (), ()).define()),
+        ),
+        (
+            "gather_u32",
+            wgsl(gather_u32::GatherU32::new(line(), p(), t(), b(), b(), b(), ()).define()),
+        ),
+        (
+            "iota_u32",
+            wgsl(iota_u32::IotaU32::new(line(), p(), t(), b(), ()).define()),
+        ),
+        (
+            "segment_ranges",
+            wgsl(segment_ranges::SegmentRanges::new(line(), p(), t(), b(), b(), ()).define()),
+        ),
+        (
+            "scan_blocks",
+            wgsl(scan_blocks::ScanBlocks::new(line(), p(), t(), b(), b(), b(), (), ()).define()),
+        ),
+        (
+            "scan_add_block_offsets",
+            wgsl(
+                scan_add_block_offsets::ScanAddBlockOffsets::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                )
+                .define(),
+            ),
+        ),
+        (
+            "rasterize",
+            wgsl(
+                rasterize::Rasterize::new(
+                    tile(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                    (),
+                )
+                .define(),
+            ),
+        ),
+        (
+            "rasterize_backward (slots)",
+            wgsl(
+                rasterize_backward::RasterizeBackward::<f32>::new(
+                    tile(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                    (),
+                    false,
+                )
+                .define(),
+            ),
+        ),
+        (
+            "sum_slots",
+            wgsl(sum_slots::SumSlots::new(line(), p(), t(), b(), b(), b(), b(), ()).define()),
+        ),
+        (
+            "project_backward",
+            wgsl(
+                project_backward::ProjectBackward::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                )
+                .define(),
+            ),
+        ),
+        (
+            "face_frames",
+            wgsl(face_frames::FaceFrames::new(line(), p(), t(), b(), b(), b(), (), true).define()),
+        ),
+        (
+            "face_frames_backward",
+            wgsl(
+                face_frames_backward::FaceFramesBackward::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    true,
+                )
+                .define(),
+            ),
+        ),
+        (
+            "lift_rows",
+            wgsl(
+                lift_rows::LiftRows::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    (),
+                    (),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    true,
+                )
+                .define(),
+            ),
+        ),
+        (
+            "lift_rows_backward",
+            wgsl(
+                lift_rows_backward::LiftRowsBackward::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    (),
+                    (),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                    b(),
+                    (),
+                    true,
+                )
+                .define(),
+            ),
+        ),
+        (
+            "csr_gather",
+            wgsl(
+                csr_gather::CsrGather::new(
+                    line(),
+                    p(),
+                    t(),
+                    b(),
+                    (),
+                    (),
+                    b(),
+                    b(),
+                    b(),
+                    b(),
+                    (),
+                    (),
+                    (),
+                    (),
+                    true,
+                )
+                .define(),
+            ),
+        ),
+        (
+            "blend",
+            wgsl(
+                blend::Blend::new(line(), p(), t(), b(), (), (), b(), b(), b(), (), (), true)
+                    .define(),
+            ),
+        ),
+        (
+            "opacity_grad",
+            wgsl(opacity_grad::OpacityGrad::new(line(), p(), t(), b(), b(), b(), ()).define()),
+        ),
+    ]
+}
+
+#[test]
+fn every_kernel_validates_without_float_atomics() {
+    for (name, src) in kernels_without_float_atomics() {
+        assert!(
+            !src.contains("atomic<f32>"),
+            "{name}: the shader declares a float atomic"
+        );
+        if let Err(e) = validate(&src, without_float_atomics()) {
+            panic!("{name}: naga rejects the WGSL without float atomics:\n{e}");
+        }
+    }
+}
+
+#[test]
+fn float_atomic_backward_needs_the_capability_and_has_it_checked() {
+    let src = wgsl(
+        rasterize_backward::RasterizeBackward::<Atomic<f32>>::new(
+            tile(),
+            props(),
+            Arc::new(TargetProperties::default()),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            buf(),
+            (),
+            (),
+            (),
+            true,
+        )
+        .define(),
+    );
+    assert!(
+        src.contains("atomic<f32>"),
+        "the float-atomic variant binds float atomics"
+    );
+    assert_eq!(
+        src.matches("atomicAdd(").count(),
+        9,
+        "nine gradient entries per pair"
+    );
+    let err = validate(&src, without_float_atomics()).expect_err("rejected without the capability");
+    assert!(err.contains("SHADER_FLOAT32_ATOMIC"), "{err}");
+    validate(&src, Capabilities::all()).expect("valid with float atomics");
+}
