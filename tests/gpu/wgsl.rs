@@ -85,10 +85,6 @@ fn line() -> KernelSettings {
     settings(CubeDim::new_1d(256))
 }
 
-fn buf() -> BufferCompilationArg {
-    BufferCompilationArg { inplace: None }
-}
-
 /// The WGSL text of a kernel definition.
 fn wgsl(def: KernelDefinition) -> String {
     WgslCompiler
@@ -111,285 +107,51 @@ fn without_float_atomics() -> Capabilities {
     Capabilities::all() - Capabilities::SHADER_FLOAT32_ATOMIC
 }
 
+/// The WGSL of kernel type `$kernel` (the type `#[cube]` generates) with `$settings` and
+/// its compilation arguments in parameter order: `B` for a buffer, `S` for a scalar, then
+/// the comptime values.
+macro_rules! shader {
+    ($kernel:ty, $settings:expr; $($arg:expr),* $(,)?) => {
+        wgsl(
+            <$kernel>::new($settings, props(), Arc::new(TargetProperties::default()), $($arg),*)
+                .define(),
+        )
+    };
+}
+
+/// A buffer argument of `shader!`.
+const B: BufferCompilationArg = BufferCompilationArg { inplace: None };
+/// A scalar argument of `shader!`.
+const S: () = ();
+
 /// Every kernel a training step launches on an adapter without float atomics, by name.
+#[rustfmt::skip]
 fn kernels_without_float_atomics() -> Vec<(&'static str, String)> {
-    let (p, t) = (props, || Arc::new(TargetProperties::default()));
-    let b = buf;
     vec![
-        (
-            "project",
-            wgsl(
-                project::Project::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                    (),
-                )
-                .define(),
-            ),
-        ),
-        (
-            "emit_intersections",
-            wgsl(
-                emit_intersections::EmitIntersections::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                )
-                .define(),
-            ),
-        ),
-        (
-            "radix_histogram",
-            wgsl(
-                radix_histogram::RadixHistogram::new(line(), p(), t(), b(), b(), (), (), ())
-                    .define(),
-            ),
-        ),
-        (
-            "radix_scatter",
-            wgsl(
-                radix_scatter::RadixScatter::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                    (),
-                )
-                .define(),
-            ),
-        ),
-        (
-            "fill_u32",
-            wgsl(fill_u32::FillU32::new(line(), p(), t(), b(), (), ()).define()),
-        ),
-        (
-            "gather_u32",
-            wgsl(gather_u32::GatherU32::new(line(), p(), t(), b(), b(), b(), ()).define()),
-        ),
-        (
-            "iota_u32",
-            wgsl(iota_u32::IotaU32::new(line(), p(), t(), b(), ()).define()),
-        ),
-        (
-            "segment_ranges",
-            wgsl(segment_ranges::SegmentRanges::new(line(), p(), t(), b(), b(), ()).define()),
-        ),
-        (
-            "scan_blocks",
-            wgsl(scan_blocks::ScanBlocks::new(line(), p(), t(), b(), b(), b(), (), ()).define()),
-        ),
-        (
-            "scan_add_block_offsets",
-            wgsl(
-                scan_add_block_offsets::ScanAddBlockOffsets::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                )
-                .define(),
-            ),
-        ),
-        (
-            "rasterize",
-            wgsl(
-                rasterize::Rasterize::new(
-                    tile(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                    (),
-                )
-                .define(),
-            ),
-        ),
+        ("project", shader!(project::Project, line(); B, B, B, B, B, B, B, B, B, S, S, S)),
+        ("emit_intersections", shader!(emit_intersections::EmitIntersections, line(); B, B, B, B, B, B, S, S)),
+        ("radix_histogram", shader!(radix_histogram::RadixHistogram, line(); B, B, S, S, S)),
+        ("radix_scatter", shader!(radix_scatter::RadixScatter, line(); B, B, B, B, B, S, S, S)),
+        ("fill_u32", shader!(fill_u32::FillU32, line(); B, S, S)),
+        ("gather_u32", shader!(gather_u32::GatherU32, line(); B, B, B, S)),
+        ("iota_u32", shader!(iota_u32::IotaU32, line(); B, S)),
+        ("segment_ranges", shader!(segment_ranges::SegmentRanges, line(); B, B, S)),
+        ("scan_blocks", shader!(scan_blocks::ScanBlocks, line(); B, B, B, S, S)),
+        ("scan_add_block_offsets", shader!(scan_add_block_offsets::ScanAddBlockOffsets, line(); B, B, S, S)),
+        ("rasterize", shader!(rasterize::Rasterize, tile(); B, B, B, B, B, B, B, S, S, S)),
         (
             "rasterize_backward (slots)",
-            wgsl(
-                rasterize_backward::RasterizeBackward::<f32>::new(
-                    tile(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                    (),
-                    false,
-                )
-                .define(),
-            ),
+            shader!(rasterize_backward::RasterizeBackward<f32>, tile(); B, B, B, B, B, B, B, B, B, B, S, S, S, false),
         ),
-        (
-            "sum_slots",
-            wgsl(sum_slots::SumSlots::new(line(), p(), t(), b(), b(), b(), b(), ()).define()),
-        ),
-        (
-            "project_backward",
-            wgsl(
-                project_backward::ProjectBackward::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                )
-                .define(),
-            ),
-        ),
-        (
-            "face_frames",
-            wgsl(face_frames::FaceFrames::new(line(), p(), t(), b(), b(), b(), (), true).define()),
-        ),
-        (
-            "face_frames_backward",
-            wgsl(
-                face_frames_backward::FaceFramesBackward::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    true,
-                )
-                .define(),
-            ),
-        ),
-        (
-            "lift_rows",
-            wgsl(
-                lift_rows::LiftRows::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    (),
-                    (),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    true,
-                )
-                .define(),
-            ),
-        ),
-        (
-            "lift_rows_backward",
-            wgsl(
-                lift_rows_backward::LiftRowsBackward::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    (),
-                    (),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                    b(),
-                    (),
-                    true,
-                )
-                .define(),
-            ),
-        ),
-        (
-            "csr_gather",
-            wgsl(
-                csr_gather::CsrGather::new(
-                    line(),
-                    p(),
-                    t(),
-                    b(),
-                    (),
-                    (),
-                    b(),
-                    b(),
-                    b(),
-                    b(),
-                    (),
-                    (),
-                    (),
-                    (),
-                    true,
-                )
-                .define(),
-            ),
-        ),
-        (
-            "blend",
-            wgsl(
-                blend::Blend::new(line(), p(), t(), b(), (), (), b(), b(), b(), (), (), true)
-                    .define(),
-            ),
-        ),
-        (
-            "opacity_grad",
-            wgsl(opacity_grad::OpacityGrad::new(line(), p(), t(), b(), b(), b(), ()).define()),
-        ),
+        ("sum_slots", shader!(sum_slots::SumSlots, line(); B, B, B, B, S)),
+        ("project_backward", shader!(project_backward::ProjectBackward, line(); B, B, B, B, B, B, B, B, B, S)),
+        ("face_frames", shader!(face_frames::FaceFrames, line(); B, B, B, S, true)),
+        ("face_frames_backward", shader!(face_frames_backward::FaceFramesBackward, line(); B, B, B, B, S, true)),
+        ("lift_rows", shader!(lift_rows::LiftRows, line(); B, S, S, B, B, B, B, B, B, S, true)),
+        ("lift_rows_backward", shader!(lift_rows_backward::LiftRowsBackward, line(); B, S, S, B, B, B, B, S, S, B, S, true)),
+        ("csr_gather", shader!(csr_gather::CsrGather, line(); B, S, S, B, B, B, B, S, S, S, S, true)),
+        ("blend", shader!(blend::Blend, line(); B, S, S, B, B, B, S, S, true)),
+        ("opacity_grad", shader!(opacity_grad::OpacityGrad, line(); B, B, B, S)),
     ]
 }
 
@@ -408,27 +170,10 @@ fn every_kernel_validates_without_float_atomics() {
 
 #[test]
 fn float_atomic_backward_needs_the_capability_and_has_it_checked() {
-    let src = wgsl(
-        rasterize_backward::RasterizeBackward::<Atomic<f32>>::new(
-            tile(),
-            props(),
-            Arc::new(TargetProperties::default()),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            buf(),
-            (),
-            (),
-            (),
-            true,
-        )
-        .define(),
+    #[rustfmt::skip]
+    let src = shader!(
+        rasterize_backward::RasterizeBackward<Atomic<f32>>, tile();
+        B, B, B, B, B, B, B, B, B, B, S, S, S, true
     );
     assert!(
         src.contains("atomic<f32>"),
