@@ -1101,3 +1101,37 @@ fn hundred_thousand_gaussians() {
         .collect();
     gradients_all_paths(&dev, &scene, &fwd, &g, "100k Gaussians");
 }
+
+#[test]
+fn image_above_the_adapter_limit_is_refused_before_allocation() {
+    let dev = device();
+    let limit = gpu::max_binding_bytes(&dev.client());
+    assert!(limit > 0, "the adapter reports its binding limit");
+    // The smallest image whose [H, W, 4] f32 output exceeds the limit.
+    let width = 16_384u32;
+    let height = u32::try_from(limit / (16 * u64::from(width)) + 1).expect("a height");
+    let scene = Scene {
+        means: vec![],
+        cov6: vec![],
+        colors: vec![],
+        opacities: vec![],
+        camera: camera(width, height, 20.0),
+        background: [0.1, 0.2, 0.3],
+    };
+    let err = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| gpu_forward(&dev, &scene)))
+        .expect_err("refused");
+    let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+    for part in [
+        format!("{width} x {height} pixels"),
+        "the image [H, W, 4]".to_string(),
+        format!("({limit} bytes)"),
+    ] {
+        assert!(msg.contains(&part), "{part:?} missing from: {msg}");
+    }
+    // Nothing was allocated: the device still renders.
+    let small = Scene {
+        camera: camera(20, 9, 20.0),
+        ..scene
+    };
+    assert_eq!(dims(&gpu_forward(&dev, &small).out), [9, 20, 4]);
+}

@@ -120,6 +120,81 @@ pub fn float_atomics_supported(client: &Client) -> bool {
         .contains(AtomicUsage::Add)
 }
 
+/// The sizes that set the buffers of a splat pass.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SceneSize {
+    /// Gaussians (N).
+    pub gaussians: usize,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Tile intersections (M), once the forward pass has counted them.
+    pub intersections: Option<usize>,
+    /// Whether the backward keeps per-intersection gradient slots (no float atomics).
+    pub slots: bool,
+}
+
+/// The largest storage buffer one kernel may bind on `client`'s adapter, in bytes: wgpu's
+/// `max_storage_buffer_binding_size`, capped by `max_buffer_size` (cubecl-wgpu reports
+/// their minimum as the largest allocation).
+pub fn max_binding_bytes(client: &Client) -> u64 {
+    client.properties().memory.max_page_size
+}
+
+/// Checks every scene-sized buffer of a splat pass over `scene` against `limit` bytes (see
+/// [`max_binding_bytes`]) before it is allocated. The error names the scene, the buffer and
+/// the limit; without this check an oversized scene ends in a panic inside wgpu.
+pub fn check_buffers(scene: &SceneSize, limit: u64) -> Result<(), String> {
+    let n = scene.gaussians as u64;
+    let pixels = u64::from(scene.width) * u64::from(scene.height);
+    let m = scene.intersections.unwrap_or(0) as u64;
+    let buffers = [
+        (
+            "the projected Gaussians [N, 8]",
+            n * u64::from(PROJECTED_STRIDE),
+        ),
+        (
+            "the screen-space gradients [N, 9]",
+            n * u64::from(GRAD2D_STRIDE),
+        ),
+        ("the image [H, W, 4]", pixels * 4),
+        ("the tile intersections [M]", m),
+        (
+            "the per-intersection gradient slots [M, 9] (adapter without float atomics)",
+            if scene.slots {
+                m * u64::from(GRAD2D_STRIDE)
+            } else {
+                0
+            },
+        ),
+    ];
+    for (what, words) in buffers {
+        let bytes = words * size_of::<u32>() as u64;
+        if bytes > limit {
+            let isects = scene
+                .intersections
+                .map_or(String::new(), |m| format!(" and {m} tile intersections"));
+            return Err(format!(
+                "a scene of {n} Gaussians at {} x {} pixels{isects} needs {bytes} bytes for \
+                 {what}, above this adapter's largest storage buffer binding ({limit} bytes): \
+                 render fewer Gaussians or a smaller image, or use an adapter with a larger \
+                 max_storage_buffer_binding_size",
+                scene.width, scene.height
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Panics with [`check_buffers`]' message when `scene` does not fit `ctx`'s adapter (a
+/// burn op cannot return an error).
+fn assert_fits(ctx: &Ctx, scene: &SceneSize) {
+    if let Err(e) = check_buffers(scene, max_binding_bytes(&ctx.client)) {
+        panic!("{e}");
+    }
+}
+
 /// Renders `N` Gaussians with `camera` over `background`.
 ///
 /// # Shapes
@@ -127,8 +202,8 @@ pub fn float_atomics_supported(client: &Client) -> bool {
 ///   `opacities`: `[N]` (after the sigmoid). All on the same device.
 ///
 /// # Panics
-/// On mismatched shapes or an empty image, or when the Gaussians touch more than
-/// `2^31 - 1` tiles in total.
+/// On mismatched shapes or an empty image, when the Gaussians touch more than `2^31 - 1`
+/// tiles in total, or when a buffer would exceed the adapter's limit ([`check_buffers`]).
 pub fn forward(
     means: CubeTensor,
     cov6: CubeTensor,
@@ -144,6 +219,14 @@ pub fn forward(
     let opacities = ctx.float_input(opacities);
     let n = check_shapes(&means, &cov6, &colors, &opacities);
     let frame = Frame::new(camera);
+    let mut scene = SceneSize {
+        gaussians: n,
+        width: frame.width,
+        height: frame.height,
+        intersections: None,
+        slots: false,
+    };
+    assert_fits(&ctx, &scene);
     let cam = ctx.camera(camera, background);
 
     let projected = ctx.empty(n * PROJECTED_STRIDE as usize);
@@ -194,6 +277,8 @@ pub fn forward(
         let counts_by_depth = ctx.gather(&tile_counts, &gaussian_from_depth_rank, n);
         let (isect_offsets, total) = ctx.exclusive_scan(&counts_by_depth, n);
         isects = ctx.read_u32(&total) as usize;
+        scene.intersections = Some(isects);
+        assert_fits(&ctx, &scene);
 
         if isects > 0 {
             let keys = ctx.empty(isects);
@@ -295,7 +380,8 @@ pub fn backward(
 /// [`backward`] with explicit [`GpuOptions`].
 ///
 /// # Panics
-/// On mismatched shapes, or, on the slot path, above `(2^32 - 1) / 9` intersections.
+/// On mismatched shapes, or, on the slot path, above `(2^32 - 1) / 9` intersections, or when
+/// a buffer would exceed the adapter's limit ([`check_buffers`]).
 #[allow(clippy::too_many_arguments)]
 pub fn backward_with_options(
     means: CubeTensor,
@@ -345,6 +431,16 @@ pub fn backward_with_options(
 
     let accumulation = options.accumulation(&ctx.client);
     let float_atomics = accumulation != Accumulation::Slots;
+    assert_fits(
+        &ctx,
+        &SceneSize {
+            gaussians: n,
+            width: frame.width,
+            height: frame.height,
+            intersections: Some(isect_len),
+            slots: !float_atomics,
+        },
+    );
     let grad2d = ctx.zeros(grad_len);
     assert!(
         float_atomics || isect_len * (GRAD2D_STRIDE as usize) <= u32::MAX as usize,
@@ -861,5 +957,74 @@ impl Ctx {
             Shape::new(shape),
             DType::F32,
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// wgpu's default `max_storage_buffer_binding_size` (128 MiB), what browsers' WebGPU
+    /// grants without asking for more.
+    const WEBGPU_DEFAULT: u64 = 128 << 20;
+
+    fn scene(m: Option<usize>, slots: bool) -> SceneSize {
+        SceneSize {
+            gaussians: 124_535,
+            width: 550,
+            height: 802,
+            intersections: m,
+            slots,
+        }
+    }
+
+    #[test]
+    fn paper_scale_scene_fits_the_webgpu_default() {
+        // The `paper` avatar's 508k intersections (performance.md), on both paths.
+        for slots in [false, true] {
+            assert_eq!(
+                check_buffers(&scene(Some(508_000), slots), WEBGPU_DEFAULT),
+                Ok(())
+            );
+        }
+    }
+
+    #[test]
+    fn oversized_slots_name_the_scene_and_the_limit() {
+        // 5M intersections: 20 MB of ids fit, 180 MB of slots do not.
+        let s = scene(Some(5_000_000), true);
+        let e = check_buffers(&s, WEBGPU_DEFAULT).expect_err("slots over the limit");
+        for part in [
+            "124535 Gaussians",
+            "550 x 802 pixels",
+            "5000000 tile intersections",
+            "180000000 bytes",
+            "gradient slots",
+            "134217728 bytes",
+        ] {
+            assert!(e.contains(part), "{part:?} missing from: {e}");
+        }
+        // With float atomics there are no slots.
+        assert_eq!(
+            check_buffers(&scene(Some(5_000_000), false), WEBGPU_DEFAULT),
+            Ok(())
+        );
+    }
+
+    #[test]
+    fn before_counting_only_gaussians_and_pixels_are_checked() {
+        let s = SceneSize {
+            gaussians: 10,
+            width: 8192,
+            height: 8192,
+            intersections: None,
+            slots: true,
+        };
+        let e = check_buffers(&s, WEBGPU_DEFAULT).expect_err("a 1 GiB image");
+        assert!(
+            e.contains("the image [H, W, 4]") && !e.contains("intersections"),
+            "{e}"
+        );
+        assert_eq!(check_buffers(&s, 2 << 30), Ok(()));
     }
 }
