@@ -715,8 +715,22 @@ impl Ctx {
     }
 
     /// An uninitialised buffer of `len` (at least one) 32-bit words.
+    ///
+    /// # Panics
+    /// When the buffer exceeds the adapter's largest storage binding ([`max_binding_bytes`]):
+    /// the last guard for buffers no scene check covers (the lifting's), with a message
+    /// instead of a panic inside wgpu.
     pub(crate) fn empty(&self, len: usize) -> Handle {
-        self.client.empty(len.max(1) * size_of::<u32>())
+        let bytes = len.max(1) * size_of::<u32>();
+        let limit = max_binding_bytes(&self.client);
+        assert!(
+            bytes as u64 <= limit,
+            "a GPU buffer of {len} 32-bit words ({bytes} bytes) exceeds this adapter's largest \
+             storage buffer binding ({limit} bytes): use fewer Gaussians (a smaller texel \
+             resolution) or a smaller image, or an adapter with a larger \
+             max_storage_buffer_binding_size"
+        );
+        self.client.empty(bytes)
     }
 
     /// A zero-filled buffer of `len` (at least one) 32-bit words (`0u32` and `0.0f32`).
@@ -1009,6 +1023,28 @@ mod tests {
             check_buffers(&scene(Some(5_000_000), false), WEBGPU_DEFAULT),
             Ok(())
         );
+    }
+
+    #[test]
+    fn allocation_above_the_limit_is_refused_with_its_size() {
+        use burn_cubecl::cubecl::device::WgpuDeviceKind;
+        let device = CubeDevice::wgpu(WgpuDeviceKind::DefaultDevice).expect("a wgpu device");
+        let ctx = Ctx {
+            client: device.client(),
+            device,
+        };
+        let limit = max_binding_bytes(&ctx.client);
+        let words = (limit / 4 + 1) as usize;
+        let err = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| ctx.empty(words)))
+            .expect_err("refused");
+        let msg = err.downcast_ref::<String>().cloned().unwrap_or_default();
+        assert!(
+            msg.contains(&format!("{words} 32-bit words"))
+                && msg.contains(&format!("({limit} bytes)")),
+            "{msg}"
+        );
+        // Below the limit buffers are still made.
+        let _ = ctx.empty(1024);
     }
 
     #[test]
