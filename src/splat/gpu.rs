@@ -456,11 +456,11 @@ pub fn backward_with_options(
     } else {
         (1, isect_len * GRAD2D_STRIDE as usize)
     };
-    let dummy = ctx.zeros(1);
-    // The slot variant binds `grad2d` as plain floats, so its shader holds no float atomic
-    // (see `rasterize_backward`'s module documentation).
+    // The slot variant binds `grad2d` as plain floats (one entry, never written: its sums
+    // come from `sum_slots` below), so its shader holds no float atomic (see
+    // `rasterize_backward`'s module documentation).
     macro_rules! launch_backward {
-        ($cell:ty, $grad2d:expr) => {
+        ($cell:ty) => {
             // SAFETY: one workgroup per tile; all buffers hold the lengths passed.
             unsafe {
                 rasterize_backward::launch_unchecked::<$cell>(
@@ -475,7 +475,7 @@ pub fn backward_with_options(
                     arg(&out.handle, pixels * 4),
                     arg(&last.handle, pixels),
                     arg(&grad_out.handle, pixels * 4),
-                    arg($grad2d, grad2d_len),
+                    arg(&grad2d, grad2d_len),
                     arg(&slots, slots_len),
                     frame.width,
                     frame.height,
@@ -486,9 +486,9 @@ pub fn backward_with_options(
         };
     }
     if float_atomics {
-        launch_backward!(Atomic<f32>, &grad2d);
+        launch_backward!(Atomic<f32>);
     } else {
-        launch_backward!(f32, &dummy);
+        launch_backward!(f32);
     }
 
     if !float_atomics {
