@@ -224,6 +224,7 @@ fn train_step_ms(vgg: Option<Arc<VggPerceptual>>) -> f64 {
     };
     let mut model = Some(AvatarTraining {
         avatar,
+        refine: None,
         objective: Objective {
             weights: LossWeights::default(),
             vgg,

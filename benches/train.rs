@@ -68,6 +68,7 @@ fn bench(c: &mut Criterion) {
     };
     let mut model = Some(AvatarTraining {
         avatar,
+        refine: None,
         objective: Objective {
             weights: LossWeights::default(),
             vgg: None,

@@ -290,6 +290,7 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
             panels: 6,
             backend: BackendKind::Flex,
             paths: PathPolicy::InsideRoot,
+            tracked: false,
         },
         &mut |l| progress(l),
     )?;

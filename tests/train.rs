@@ -17,6 +17,7 @@ use texavatars::device::BackendKind;
 use texavatars::head::HeadAsset;
 use texavatars::model::{Ablations, Avatar, NetConfig};
 use texavatars::synth::{self, SynthConfig};
+use texavatars::train::refine::{self, RefinedParams};
 use texavatars::train::{
     self, AvatarTraining, FrameLoader, IterationRecord, LossWeights, Objective, Schedule,
     TrainBatch, TrainConfig, TrainOptions, files, latest_checkpoint,
@@ -95,6 +96,7 @@ fn batch(n: usize, device: &Device) -> TrainBatch {
 fn no_vgg(avatar: Avatar) -> AvatarTraining {
     AvatarTraining {
         avatar,
+        refine: None,
         objective: Objective {
             weights: LossWeights::default(),
             vgg: None,
@@ -260,6 +262,7 @@ fn each_ablation_builds_and_runs_one_step() {
         ("no-global-uv", off(|a| a.global_uv = false)),
         ("no-jacobian", off(|a| a.jacobian = false)),
         ("no-eta", off(|a| a.eta = false)),
+        ("no-flame-refinement", off(|a| a.flame_refinement = false)),
     ];
     if vgg_installed() {
         cases.push(("vgg", Ablations::default()));
@@ -285,6 +288,11 @@ fn each_ablation_builds_and_runs_one_step() {
         assert_eq!(r.avatar.lift.mode, ablations.lift_mode(), "{name}");
         assert_eq!(r.avatar.lift.frame, ablations.frame_kind(), "{name}");
         assert_eq!(r.avatar.net.zero_eta, !ablations.eta, "{name}");
+        assert_eq!(
+            out.join(refine::REFINED_NPZ).is_file(),
+            ablations.flame_refinement,
+            "{name}"
+        );
         let vgg_log = out.join("train/epoch-1/VGG.log");
         let vgg: f64 = std::fs::read_to_string(&vgg_log)
             .unwrap()
@@ -438,7 +446,8 @@ fn decoders_and_encoders_train_at_their_learning_rates() {
         .unwrap()
         .init_seeded(4, &head().mesh, &device)
         .unwrap();
-    let model = no_vgg(avatar);
+    let mut model = no_vgg(avatar);
+    model.refine = Some(refinement(&device));
     let (terms, _) = model.losses(&batch(1, &device), None);
     let grads = burn::optim::GradientsParams::from_grads(terms.total.backward(), &model);
     let mut optim = train::optimizer(&c);
@@ -455,6 +464,12 @@ fn decoders_and_encoders_train_at_their_learning_rates() {
     for (path, step) in &v.steps {
         let want = if path.contains("exp2code") || path.contains("view_encoder") {
             c.lr_encoders
+        } else if path.contains(refine::REFINE_EXPR) {
+            c.lr_flame_expr
+        } else if path.contains(refine::REFINE_POSE) {
+            c.lr_flame_pose
+        } else if path.contains(refine::REFINE_TRANSLATION) {
+            c.lr_flame_translation
         } else {
             c.lr_decoders
         } as f32;
@@ -463,7 +478,62 @@ fn decoders_and_encoders_train_at_their_learning_rates() {
             "{path}: largest step {step}, learning rate {want}"
         );
     }
-    assert_eq!(v.steps.len(), 27);
+    // The networks' 27 and FLAME refinement's 3 (expression, pose, translation).
+    assert_eq!(v.steps.len(), 30);
+    for part in [
+        refine::REFINE_EXPR,
+        refine::REFINE_POSE,
+        refine::REFINE_TRANSLATION,
+    ] {
+        assert!(
+            v.steps.iter().any(|(p, _)| p.contains(part)),
+            "{part}: {:?}",
+            v.steps
+        );
+    }
+}
+
+/// FLAME refinement of the tiny benchmark's training split (zero corrections).
+pub(crate) fn refinement(device: &Device) -> refine::FlameRefinement {
+    let ds = HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap();
+    let timesteps = refine::Timesteps::of_dataset(&ds).unwrap();
+    refine::FlameRefinement::new(&head().model, timesteps, device).unwrap()
+}
+
+fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().iter::<f32>().collect()
+}
+
+/// At zero corrections the tensor LBS reproduces the loader's vertices (the host's f64
+/// `lbs`) and the condition, for training frames and for validation frames of the same
+/// timesteps; a frame of a timestep that was not trained (held-out) passes through as it is.
+#[test]
+fn flame_refinement_at_zero_reproduces_the_tracked_frames() {
+    let device = Device::flex().autodiff();
+    let r = refinement(&device);
+    let train = HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap();
+    // 2 frames per sequence x 10 sequences.
+    assert_eq!(r.timesteps.len(), 20);
+    let val = HeadDataset::open(data(), Split::Val, Arc::new(head().model.clone())).unwrap();
+    let test = HeadDataset::open(data(), Split::Test, Arc::new(head().model.clone())).unwrap();
+    let items = vec![
+        train.load_item(0).unwrap(),
+        val.load_item(1).unwrap(),
+        test.load_item(0).unwrap(),
+    ];
+    assert!(r.timesteps.row(&items[0].flame_key).is_some());
+    assert!(r.timesteps.row(&items[1].flame_key).is_some());
+    assert!(r.timesteps.row(&items[2].flame_key).is_none());
+    let b = HeadBatcher.try_batch(items, &device).unwrap();
+    let (vertices, condition) = r.apply(&b);
+    let (got, want) = (host(vertices), host(b.vertices.clone()));
+    let err = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(err < 2e-6, "largest vertex difference {err}");
+    assert_eq!(host(condition), host(b.condition.clone()));
 }
 
 #[test]
@@ -538,11 +608,115 @@ fn train_command_runs_and_resumes() {
         assert!(stderr.contains(term), "{term}: {stderr}");
     }
     assert!(out.join(files::AVATAR).is_file());
+    refined_parameters_are_saved_and_exported(&out, 20);
     // A finished run resumes to its end without training again (and without wgpu: the
     // optimiser state is restored on the run's backend).
     let (stdout, stderr) = run(true);
     assert!(stdout.contains("trained iterations 20..20"), "{stdout}");
     assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
+}
+
+/// A finished run of `iterations` steps with FLAME refinement (the default): its refined
+/// parameters are saved, moved from the tracked ones by at most what Adam's steps allow,
+/// exported as VHAP `flame_param` files, and used by the dataset for the timesteps they
+/// refine.
+fn refined_parameters_are_saved_and_exported(run: &Path, iterations: usize) {
+    let c = tiny_config();
+    let refined = RefinedParams::load(run)
+        .unwrap()
+        .expect("refined parameters");
+    let train = HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap();
+    let tracked = refine::Timesteps::of_dataset(&train).unwrap();
+    assert_eq!(refined.keys, tracked.keys);
+    assert_eq!(refined.timesteps, tracked.timesteps);
+    let (mut moved_expr, mut moved_pose, mut moved_t) = (0.0f32, 0.0f32, 0.0f32);
+    let max_diff = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    for (p, t) in refined.poses.iter().zip(&tracked.tracked) {
+        moved_expr = moved_expr.max(max_diff(&p.expr, &t.expr));
+        moved_pose = moved_pose.max(max_diff(&p.pose15(), &t.pose15()));
+        moved_t = moved_t.max(max_diff(&p.translation, &t.translation));
+        assert_eq!(p.shape, t.shape);
+    }
+    // Adam moves a parameter by at most about lr per step (|m / sqrt(v)| <= 1 after bias
+    // correction, up to (1 - beta1) / sqrt(1 - beta2) for a lone spike).
+    let bound = |lr: f64| (lr * iterations as f64 * 3.2) as f32;
+    for (name, moved, lr) in [
+        ("expr", moved_expr, c.lr_flame_expr),
+        ("pose", moved_pose, c.lr_flame_pose),
+        ("translation", moved_t, c.lr_flame_translation),
+    ] {
+        assert!(
+            moved > 0.0 && moved <= bound(lr),
+            "{name}: moved {moved}, lr {lr}"
+        );
+    }
+    // `export flame-param`: one VHAP file per timestep, the arrays and shapes VHAP's
+    // `NeRFDatasetWriter.write_flame_param` (vhap/export_as_nerf_dataset.py) writes:
+    // translation, rotation, neck_pose, jaw_pose (1, 3), eyes_pose (1, 6), expr (1, E),
+    // shape (S,), static_offset (1, V, 3) when the subject has one.
+    let export = run.join("exported");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["export", "flame-param", "--run"])
+        .arg(run)
+        .arg("--out")
+        .arg(&export)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let files: Vec<_> = std::fs::read_dir(export.join("flame_param"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(files.len(), refined.poses.len());
+    for (t, p) in refined.timesteps.iter().zip(&refined.poses) {
+        let f = export.join("flame_param").join(format!("{t:05}.npz"));
+        let mut z = texavatars::io::npz::Npz::open(&f).unwrap();
+        for (name, shape) in [
+            ("translation", vec![1, 3]),
+            ("rotation", vec![1, 3]),
+            ("neck_pose", vec![1, 3]),
+            ("jaw_pose", vec![1, 3]),
+            ("eyes_pose", vec![1, 6]),
+            ("expr", vec![1, p.expr.len()]),
+            ("shape", vec![p.shape.len()]),
+        ] {
+            assert_eq!(z.floats(name).unwrap().shape, shape, "{name}");
+        }
+        assert_eq!(&texavatars::head::HeadPose::load_npz(&f).unwrap(), p);
+    }
+    // A second export into the same folder is refused and leaves the files alone.
+    let again = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["export", "flame-param", "--run"])
+        .arg(run)
+        .arg("--out")
+        .arg(&export)
+        .output()
+        .unwrap();
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("not empty"));
+    // The validation split (the same timesteps, another camera) is posed with the refined
+    // parameters; the held-out split keeps its tracked ones.
+    let model = Arc::new(head().model.clone());
+    let shared = Arc::new(refined.clone());
+    let val = HeadDataset::open(data(), Split::Val, model.clone()).unwrap();
+    let key = val.flame_key(0).unwrap();
+    let pose = refined.get(&key).expect("a training timestep").clone();
+    let want = texavatars::head::lbs(&model, &pose).unwrap();
+    let tracked_v = val.conditioning(0).unwrap().vertices.clone();
+    let val = val.with_refined(shared.clone());
+    let got = val.conditioning(0).unwrap();
+    assert_eq!(got.vertices, want);
+    assert_ne!(got.vertices, tracked_v);
+    assert_eq!(got.expr, pose.expr);
+    let test = HeadDataset::open(data(), Split::Test, model.clone()).unwrap();
+    let before = test.conditioning(0).unwrap();
+    let test = test.with_refined(shared);
+    assert_eq!(test.conditioning(0).unwrap(), before);
 }
 
 #[test]

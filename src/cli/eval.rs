@@ -58,6 +58,11 @@ pub struct EvalArgs {
     /// it, or in a sibling VHAP export it combines, are read).
     #[arg(long)]
     pub allow_outside_paths: bool,
+    /// Pose every frame with its tracked FLAME parameters, ignoring the run's refined ones
+    /// (by default the training timesteps, i.e. the novel-view split, use the refined ones,
+    /// as GaussianAvatars does).
+    #[arg(long)]
+    pub tracked: bool,
 }
 
 /// Runs `eval`.
@@ -86,6 +91,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         } else {
             PathPolicy::InsideRoot
         },
+        tracked: a.tracked,
     };
     let report = evaluate(&opts, &mut |l| eprintln!("eval: {l}"))?;
     println!("{}", report.table);

@@ -1,4 +1,6 @@
-//! `texavatars export ply`: a driven avatar's Gaussians as per-frame 3DGS PLY files.
+//! `texavatars export ply`: a driven avatar's Gaussians as per-frame 3DGS PLY files;
+//! `texavatars export flame-param`: a trained avatar's refined FLAME parameters as VHAP
+//! `flame_param` files.
 
 use std::path::PathBuf;
 
@@ -18,6 +20,21 @@ pub enum ExportCommand {
     /// Per-frame world-space 3DGS PLY files (INRIA layout, SH degree 0 unless
     /// `--sh-degree`), with each frame's camera as JSON (`splat render --camera`).
     Ply(PlyArgs),
+    /// A trained avatar's refined FLAME parameters (FLAME refinement, on by default in
+    /// `train`) as VHAP `flame_param` files: `OUT/flame_param/TTTTT.npz` per training
+    /// timestep (T: its `timestep_index`), in the layout VHAP's export writes.
+    FlameParam(FlameParamArgs),
+}
+
+/// Arguments of `export flame-param`.
+#[derive(Debug, Args)]
+pub struct FlameParamArgs {
+    /// The training run's folder (its `refined_flame_param.npz`).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Output folder; its `flame_param/` must not exist or be empty.
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 /// Arguments of `export ply`.
@@ -48,7 +65,36 @@ pub struct PlyArgs {
 pub fn run(cmd: ExportCommand) -> anyhow::Result<()> {
     match cmd {
         ExportCommand::Ply(a) => ply_command(a),
+        ExportCommand::FlameParam(a) => flame_param_command(a),
     }
+}
+
+fn flame_param_command(a: FlameParamArgs) -> anyhow::Result<()> {
+    use crate::train::refine::{REFINED_NPZ, RefinedParams};
+    let Some(refined) = RefinedParams::load(&a.run)? else {
+        return Err(crate::error::Error::invalid(
+            a.run.display().to_string(),
+            REFINED_NPZ,
+            "missing: the run was trained without FLAME refinement, or has not finished",
+        )
+        .into());
+    };
+    let folder = a.out.join("flame_param");
+    if std::fs::read_dir(&folder).is_ok_and(|mut d| d.next().is_some()) {
+        return Err(crate::error::Error::invalid(
+            folder.display().to_string(),
+            "folder",
+            "is not empty; choose another --out (nothing was written)",
+        )
+        .into());
+    }
+    let files = refined.export_vhap(&a.out)?;
+    println!(
+        "wrote {} refined flame_param files to {}",
+        files.len(),
+        folder.display()
+    );
+    Ok(())
 }
 
 fn ply_command(a: PlyArgs) -> anyhow::Result<()> {
@@ -144,6 +190,7 @@ mod tests {
         ];
         Cli::try_parse_from(base.iter().chain(extra)).map(|c| match c.cmd {
             ExportCommand::Ply(a) => a,
+            ExportCommand::FlameParam(a) => panic!("parsed export ply as {a:?}"),
         })
     }
 

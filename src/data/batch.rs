@@ -18,8 +18,9 @@ use crate::error::{Error, Result};
 /// - `pose`: [N, 15]
 /// - `eta`: [N, 128]
 /// - `condition`: [N, E + 15 + 128], the paper's order: `[expr, pose, eta]`
+/// - `translation`: [N, 3]
 /// - `vertices`: [N, V, 3]
-/// - `cameras`, `timesteps`, `camera_indices`: N entries
+/// - `cameras`, `timesteps`, `camera_indices`, `flame_keys`: N entries
 #[derive(Clone, Debug)]
 pub struct HeadBatch {
     pub images: Tensor<4>,
@@ -28,10 +29,13 @@ pub struct HeadBatch {
     pub pose: Tensor<2>,
     pub eta: Tensor<2>,
     pub condition: Tensor<2>,
+    pub translation: Tensor<2>,
     pub vertices: Tensor<3>,
     pub cameras: Vec<Camera>,
     pub timesteps: Vec<usize>,
     pub camera_indices: Vec<usize>,
+    /// Each frame's `flame_param_path` ([`HeadItem::flame_key`]).
+    pub flame_keys: Vec<String>,
 }
 
 /// Stacks [`HeadItem`]s into a [`HeadBatch`] on a device.
@@ -99,6 +103,7 @@ impl HeadBatcher {
         let expr = stack(&|it| &it.expr);
         let pose = stack(&|it| &it.pose);
         let eta = stack(&|it| &it.eta);
+        let translation = stack(&|it| &it.translation);
         let vertices: Vec<f32> = items
             .iter()
             .flat_map(|it| it.vertices.iter().flatten().copied())
@@ -113,10 +118,12 @@ impl HeadBatcher {
             expr,
             pose,
             eta,
+            translation: Tensor::from_data(TensorData::new(translation, [n, 3]), device),
             vertices: Tensor::from_data(TensorData::new(vertices, [n, v, 3]), device),
             cameras: items.iter().map(|it| it.camera).collect(),
             timesteps: items.iter().map(|it| it.timestep).collect(),
             camera_indices: items.iter().map(|it| it.camera_index).collect(),
+            flame_keys: items.iter().map(|it| it.flame_key.clone()).collect(),
         })
     }
 }

@@ -56,6 +56,8 @@ pub struct Conditioning {
     pub pose: [f32; POSE_DIM],
     /// The eta side file's values, zeros when it is absent.
     pub eta: Vec<f32>,
+    /// The head's translation (VHAP's `translation`).
+    pub translation: [f32; 3],
     /// The posed vertices ([`lbs()`], with translation and static offsets).
     pub vertices: Vec<[f32; 3]>,
 }
@@ -88,8 +90,13 @@ pub struct HeadItem {
     pub pose: [f32; POSE_DIM],
     /// Eta, `[128]`.
     pub eta: Vec<f32>,
+    /// The head's translation.
+    pub translation: [f32; 3],
     /// Posed vertices, `[V]`.
     pub vertices: Vec<[f32; 3]>,
+    /// The frame's `flame_param_path` relative to the transforms file's folder
+    /// ([`HeadDataset::flame_key`]): which timestep FLAME refinement corrects.
+    pub flame_key: String,
 }
 
 impl HeadItem {
@@ -111,6 +118,8 @@ pub struct HeadDataset {
     model: Arc<HeadModel>,
     identity: Arc<Identity>,
     cache: Option<Cache>,
+    /// Refined parameters that replace the tracked ones of their timesteps.
+    refined: Option<Arc<crate::train::refine::RefinedParams>>,
     /// Set once a missing mask file has been reported.
     mask_warned: std::sync::atomic::AtomicBool,
 }
@@ -189,6 +198,7 @@ impl HeadDataset {
             model,
             identity,
             cache: Some(Mutex::default()),
+            refined: None,
             mask_warned: Default::default(),
         })
     }
@@ -251,6 +261,37 @@ impl HeadDataset {
         })
     }
 
+    /// Frame `index`'s `flame_param_path` relative to the transforms file's folder, as the
+    /// JSON writes it (the key of its timestep in FLAME refinement).
+    pub fn flame_key(&self, index: usize) -> Result<String> {
+        let frame = self.frame(index)?;
+        let Some(path) = &frame.flame_param else {
+            return Err(Error::invalid(
+                self.transforms.display().to_string(),
+                format!("frames[{index}].flame_param_path"),
+                "missing",
+            ));
+        };
+        let dir = self.transforms.parent().unwrap_or(Path::new(""));
+        Ok(path
+            .strip_prefix(dir)
+            .unwrap_or(path)
+            .to_string_lossy()
+            .replace('\\', "/"))
+    }
+
+    /// Poses the timesteps that `refined` holds with its (refined) parameters instead of
+    /// the tracked ones (its shape and static offsets included); the others keep theirs.
+    /// Evaluation uses it for a split that shares timesteps with training (novel view), as
+    /// GaussianAvatars' `render.py` does with the `flame_param.npz` of a trained model.
+    pub fn with_refined(mut self, refined: Arc<crate::train::refine::RefinedParams>) -> Self {
+        self.refined = Some(refined);
+        if let Some(cache) = &self.cache {
+            lock(cache).clear();
+        }
+        self
+    }
+
     /// Reads frame `index`: image, mask, camera and the timestep's conditioning. Errors name
     /// the file and the field at fault (an index past the end names the JSON's `frames`).
     pub fn load_item(&self, index: usize) -> Result<HeadItem> {
@@ -307,7 +348,9 @@ impl HeadDataset {
             expr: cond.expr.clone(),
             pose: cond.pose,
             eta: cond.eta.clone(),
+            translation: cond.translation,
             vertices: cond.vertices.clone(),
+            flame_key: self.flame_key(index)?,
         })
     }
 
@@ -328,7 +371,17 @@ impl HeadDataset {
         {
             return Ok(c.clone());
         }
-        let c = Arc::new(load_conditioning(&self.model, &self.identity, path)?);
+        let refined = match &self.refined {
+            Some(r) => r.get(&self.flame_key(index)?).cloned(),
+            None => None,
+        };
+        let c = Arc::new(match refined {
+            Some(pose) => {
+                let what = path.display().to_string();
+                pose_conditioning(&self.model, pose, vhap::load_eta(path)?, &what)?
+            }
+            None => load_conditioning(&self.model, &self.identity, path)?,
+        });
         if let Some(cache) = &self.cache {
             lock(cache).insert(path.clone(), c.clone());
         }
@@ -378,6 +431,7 @@ pub fn pose_conditioning(
     })?;
     Ok(Conditioning {
         pose: pose.pose15(),
+        translation: pose.translation,
         expr: pose.expr,
         eta,
         vertices,

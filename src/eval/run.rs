@@ -57,6 +57,11 @@ pub struct EvalOptions {
     pub backend: BackendKind,
     /// Where the datasets' files may live ([`PathPolicy`]; `--allow-outside-paths`).
     pub paths: PathPolicy,
+    /// Pose every frame with its tracked parameters, ignoring the run's refined ones
+    /// (`--tracked`). By default a frame of a timestep the run refined (the novel-view
+    /// split's) is posed with the refined parameters, as GaussianAvatars' `render.py` does;
+    /// held-out and FREE timesteps were never refined and keep their tracked ones either way.
+    pub tracked: bool,
 }
 
 /// One scored image.
@@ -141,6 +146,11 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
         Some(p) => Some(Identity::load(p)?),
         None => None,
     };
+    let refined = if opts.tracked {
+        None
+    } else {
+        crate::train::refine::RefinedParams::load(&opts.run)?.map(Arc::new)
+    };
     let mut splits: Vec<(String, PathBuf)> = Vec::new();
     for &split in &opts.splits {
         let path = opts.data.join(split.file_name());
@@ -176,6 +186,9 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
         if let Some(id) = &identity {
             ds = ds.with_identity(id)?;
         }
+        if let Some(r) = &refined {
+            ds = ds.with_refined(r.clone());
+        }
         let checked = ds.check_files()?;
         progress(&format!(
             "{split}: checked {} frames and {} timesteps in {:.1} s",
@@ -207,6 +220,7 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
                 expr: item.expr,
                 pose: item.pose,
                 eta: item.eta,
+                translation: item.translation,
                 vertices: item.vertices,
             };
             check_frame(

@@ -22,6 +22,12 @@ pub const FEATURE_REST_LR_DIVISOR: f64 = 20.0;
 pub const OPACITY_LR: f64 = 0.05;
 pub const SCALING_LR: f64 = 0.017;
 pub const ROTATION_LR: f64 = 0.001;
+/// FLAME refinement's learning rates (`arguments/__init__.py`, `flame_expr_lr`,
+/// `flame_pose_lr` for the four rotations, `flame_trans_lr`), one parameter group each in
+/// `FlameGaussianModel.training_setup`; on unless `--not_finetune_flame_params`.
+pub const FLAME_EXPR_LR: f64 = 1e-3;
+pub const FLAME_POSE_LR: f64 = 1e-5;
+pub const FLAME_TRANS_LR: f64 = 1e-6;
 /// Adam's epsilon (`training_setup`: `torch.optim.Adam(l, lr=0.0, eps=1e-15)`).
 pub const ADAM_EPS: f32 = 1e-15;
 

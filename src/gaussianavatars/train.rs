@@ -60,6 +60,7 @@ use crate::splat::cpu::{self, ProjCamera};
 use crate::splat::demo::Pcg;
 use crate::splat::{self, Gaussians, SplatParams};
 use crate::train::loss::LossTerms;
+use crate::train::refine::{self, FlameRefinement, Timesteps};
 use crate::train::step::guarded;
 use crate::train::{
     Launch, Schedule, StepOutput, StopControl, TrainBatch, TrainOptions, files, open_frames,
@@ -75,8 +76,10 @@ pub mod ga_files {
 }
 
 /// What a GaussianAvatars run writes into its folder, removed by `--force`.
-pub const OWNED: [&str; 7] = [
+pub const OWNED: [&str; 9] = [
     ga_files::CONFIG,
+    refine::REFINED_NPZ,
+    refine::REFINED_INDEX,
     ga_files::POINT_CLOUD_DIR,
     files::CHECKPOINTS,
     files::IDENTITY,
@@ -114,8 +117,15 @@ pub struct GaTrainConfig {
     /// Where tensors live (`--backend` overrides it).
     #[serde(default = "flex")]
     pub backend: BackendKind,
+    /// FLAME refinement ([`crate::train::refine`]; GaussianAvatars' default, off with its
+    /// `--not_finetune_flame_params`), at GaussianAvatars' learning rates.
+    #[serde(default = "yes")]
+    pub flame_refinement: bool,
 }
 
+fn yes() -> bool {
+    true
+}
 fn three() -> usize {
     3
 }
@@ -181,6 +191,9 @@ impl GaTrainConfig {
         }
         if self.seed != other.seed {
             return Err("seed");
+        }
+        if self.flame_refinement != other.flame_refinement {
+            return Err("flame_refinement");
         }
         Ok(())
     }
@@ -288,6 +301,9 @@ pub fn lr_scheduler(total: usize, extent: f32) -> ModuleLrScheduler {
         .with_group(group("opacity"), ga::OPACITY_LR)
         .with_group(group("scaling"), ga::SCALING_LR)
         .with_group(group("rotation"), ga::ROTATION_LR)
+        .with_group(group(refine::REFINE_EXPR), ga::FLAME_EXPR_LR)
+        .with_group(group(refine::REFINE_POSE), ga::FLAME_POSE_LR)
+        .with_group(group(refine::REFINE_TRANSLATION), ga::FLAME_TRANS_LR)
 }
 
 /// Adam as GaussianAvatars sets it up (betas 0.9, 0.999; eps 1e-15).
@@ -394,6 +410,8 @@ impl DensityState {
 pub struct GaTraining {
     pub model: GaModel,
     pub density: DensityState,
+    /// FLAME refinement (`None`: the tracked meshes as they are).
+    pub refine: Option<FlameRefinement>,
     #[module(skip)]
     pub setup: GaSetup,
 }
@@ -444,18 +462,25 @@ pub struct FrameLoss {
 }
 
 /// GaussianAvatars' objective (`train.py`) on frame 0 of `item`, colours from the SH bands
-/// up to `degree`; `tap`: track the screen-space tap for its gradient.
+/// up to `degree`; `tap`: track the screen-space tap for its gradient; `refine`: pose the
+/// frame with its refined FLAME parameters.
 pub fn objective(
     model: &GaModel,
     faces: &[[u32; 3]],
     item: &TrainBatch,
     degree: usize,
     tap: bool,
+    refine: Option<&FlameRefinement>,
 ) -> FrameLoss {
     let batch = &item.batch;
     let camera = batch.cameras[0];
     let [_, v, _] = batch.vertices.dims();
-    let vertices = batch.vertices.clone().narrow(0, 0, 1).reshape([v, 3]);
+    let vertices = match refine {
+        Some(r) => r.apply(batch).0,
+        None => batch.vertices.clone(),
+    }
+    .narrow(0, 0, 1)
+    .reshape([v, 3]);
     let g = model.gaussians_at_degree(faces, vertices.clone(), camera.position(), degree);
     let n = g.len();
     let mut screen = Tensor::<2>::zeros([n, 2], &g.means.device());
@@ -555,6 +580,7 @@ impl GaTraining {
         Self {
             model,
             density,
+            refine: self.refine,
             setup: self.setup,
         }
     }
@@ -575,7 +601,14 @@ impl TrainStep for GaTraining {
             screen,
             radii,
             vertices,
-        } = objective(&self.model, &self.setup.faces, &item, degree, true);
+        } = objective(
+            &self.model,
+            &self.setup.faces,
+            &item,
+            degree,
+            true,
+            self.refine.as_ref(),
+        );
         let raw = terms.total.backward();
         let screen_grad = screen
             .grad(&raw)
@@ -675,7 +708,21 @@ impl TrainStep for GaTraining {
             me = me.replaced(&d.stored, &d.binding, Stats::zeros(n));
             let zeroed = reset.then_some(me.model.opacity.id);
             *optim = edit_moments(optim, &ids, &d.old_from_new, zeroed);
-            return me;
+            if me.refine.is_none() {
+                return me;
+            }
+            // GaussianAvatars steps Adam after densifying: the new Gaussian tensors have no
+            // gradient yet, the FLAME parameters do.
+            let m = &me.model;
+            grads.remove::<2>(m.xyz.id);
+            grads.remove::<3>(m.features_dc.id);
+            if let Some(r) = &m.features_rest {
+                grads.remove::<3>(r.id);
+            }
+            grads.remove::<1>(m.opacity.id);
+            grads.remove::<2>(m.scaling.id);
+            grads.remove::<2>(m.rotation.id);
+            return optim.step(lr, me, grads);
         }
         if reset {
             grads.remove::<1>(me.model.opacity.id);
@@ -707,6 +754,7 @@ impl InferenceStep for GaTraining {
             &item,
             self.model.sh_degree,
             false,
+            self.refine.as_ref(),
         );
         StepOutput::new(&f.terms, f.psnr, 1)
     }
@@ -786,7 +834,12 @@ pub fn edit_moments(
 /// The module of a checkpoint's record (`model-E.bpk`): the Gaussians, binding and
 /// statistics it holds, so that burn's own load finds matching shapes (densification
 /// changes them).
-pub fn from_checkpoint(path: &Path, setup: GaSetup, device: &Device) -> Result<GaTraining> {
+pub fn from_checkpoint(
+    path: &Path,
+    setup: GaSetup,
+    refine: Option<FlameRefinement>,
+    device: &Device,
+) -> Result<GaTraining> {
     let what = path.display().to_string();
     let reader = burn_pack::Reader::from_file(path)
         .map_err(|e| Error::invalid(&what, "burnpack", e.to_string()))?;
@@ -842,6 +895,7 @@ pub fn from_checkpoint(path: &Path, setup: GaSetup, device: &Device) -> Result<G
     Ok(GaTraining {
         model,
         density,
+        refine,
         setup,
     })
 }
@@ -923,10 +977,17 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
         pending: Arc::new(Mutex::new(None)),
         guard: Some(stop.clone()),
     };
+    let refine = if config.flame_refinement {
+        let timesteps = Timesteps::of_dataset(&train_set)?;
+        Some(FlameRefinement::new(&head.model, timesteps, &device)?)
+    } else {
+        None
+    };
     let training = match folder.checkpoint {
         Some(c) => from_checkpoint(
             &folder.ckpt_dir.join(format!("model-{c}.bpk")),
             setup,
+            refine,
             &device,
         )?,
         None => {
@@ -935,6 +996,7 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
             GaTraining {
                 model,
                 density: DensityState::new(Stats::zeros(n), vec![1.0; faces.len()], &device),
+                refine,
                 setup,
             }
         }
@@ -999,6 +1061,9 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
         let identity = out.join(files::IDENTITY);
         let flame = output.join(super::folder::FLAME_PARAM);
         std::fs::copy(&identity, &flame).map_err(|e| Error::io(&flame, e))?;
+        if let Some(r) = &trained.refine {
+            r.refined().save(out)?;
+        }
     } else {
         launch.stopped(options, reached)?;
     }

@@ -133,7 +133,7 @@ fn apply(a: &M3, v: [f64; 3]) -> [f64; 3] {
 
 /// Template plus static offsets plus shape and expression blendshapes (step 1 of LBS).
 /// Coefficients beyond the model's are ignored (`lbs` rejects them).
-fn shaped_vertices(model: &HeadModel, pose: &HeadPose) -> Vec<[f64; 3]> {
+pub(crate) fn shaped_vertices(model: &HeadModel, pose: &HeadPose) -> Vec<[f64; 3]> {
     let v = model.num_vertices();
     let k = model.num_shape + model.num_expr;
     let mut coef = vec![0.0f64; k];
@@ -171,7 +171,7 @@ fn shaped_vertices(model: &HeadModel, pose: &HeadPose) -> Vec<[f64; 3]> {
 }
 
 /// Joint locations of shaped vertices (step 2 of LBS).
-fn regress_joints(model: &HeadModel, shaped: &[[f64; 3]]) -> Vec<[f64; 3]> {
+pub(crate) fn regress_joints(model: &HeadModel, shaped: &[[f64; 3]]) -> Vec<[f64; 3]> {
     let v = model.num_vertices();
     (0..model.num_joints())
         .map(|a| {

@@ -7,9 +7,11 @@ pub mod meta;
 pub mod model;
 pub mod mpfb;
 pub mod params;
+pub mod rig;
 pub mod teeth;
 
 pub use asset::HeadAsset;
 pub use lbs::{HeadPose, lbs};
 pub use meta::HeadMeta;
 pub use model::HeadModel;
+pub use rig::Rig;

@@ -46,6 +46,10 @@ pub struct Ablations {
     /// The VGG perceptual loss (switched on late in training, method §6); `false` is
     /// "w/o VGG". Read by the training objective, not by the avatar.
     pub vgg: bool,
+    /// FLAME refinement during training ([`crate::train::refine`], on by default as in the
+    /// reference and GaussianAvatars); `false` is "w/o FLAME refinement": the tracked
+    /// meshes as they are. Read by training, not by the avatar.
+    pub flame_refinement: bool,
 }
 
 impl Default for Ablations {
@@ -55,6 +59,7 @@ impl Default for Ablations {
             jacobian: true,
             eta: true,
             vgg: true,
+            flame_refinement: true,
         }
     }
 }

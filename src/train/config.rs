@@ -43,6 +43,15 @@ pub struct TrainConfig {
     /// Learning rate of Exp2Code and the view encoder (4e-4).
     #[serde(default = "lr_encoders")]
     pub lr_encoders: f64,
+    /// Learning rate of the refined expressions (FLAME refinement, 1e-3).
+    #[serde(default = "lr_flame_expr")]
+    pub lr_flame_expr: f64,
+    /// Learning rate of the refined rotations (1e-5).
+    #[serde(default = "lr_flame_pose")]
+    pub lr_flame_pose: f64,
+    /// Learning rate of the refined translations (1e-6).
+    #[serde(default = "lr_flame_translation")]
+    pub lr_flame_translation: f64,
     /// Adam's epsilon (1e-15).
     #[serde(default = "adam_eps")]
     pub adam_eps: f64,
@@ -83,6 +92,15 @@ fn lr_decoders() -> f64 {
 }
 fn lr_encoders() -> f64 {
     LR_ENCODERS
+}
+fn lr_flame_expr() -> f64 {
+    LR_FLAME_EXPR
+}
+fn lr_flame_pose() -> f64 {
+    LR_FLAME_POSE
+}
+fn lr_flame_translation() -> f64 {
+    LR_FLAME_TRANSLATION
 }
 fn adam_eps() -> f64 {
     ADAM_EPS
@@ -148,6 +166,9 @@ impl TrainConfig {
             batch_size: 1,
             lr_decoders: LR_DECODERS,
             lr_encoders: LR_ENCODERS,
+            lr_flame_expr: LR_FLAME_EXPR,
+            lr_flame_pose: LR_FLAME_POSE,
+            lr_flame_translation: LR_FLAME_TRANSLATION,
             adam_eps: ADAM_EPS,
             adam_beta1: ADAM_BETA1,
             adam_beta2: ADAM_BETA2,
@@ -259,6 +280,9 @@ impl TrainConfig {
         for (field, lr) in [
             ("lr_decoders", self.lr_decoders),
             ("lr_encoders", self.lr_encoders),
+            ("lr_flame_expr", self.lr_flame_expr),
+            ("lr_flame_pose", self.lr_flame_pose),
+            ("lr_flame_translation", self.lr_flame_translation),
         ] {
             if !(lr.is_finite() && lr >= 0.0) {
                 return bad(field, "must be a finite learning rate >= 0");

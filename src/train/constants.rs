@@ -42,6 +42,18 @@ pub const LR_DECODERS: f64 = 6e-4;
 /// Learning rate of Exp2Code and the view encoder (method §6: 4e-4).
 pub const LR_ENCODERS: f64 = 4e-4;
 
+/// Learning rate of the refined expression coefficients (GaussianAvatars' and the
+/// TexAvatars reference's `flame_expr_lr`, `arguments/__init__.py`: 1e-3).
+pub const LR_FLAME_EXPR: f64 = 1e-3;
+
+/// Learning rate of the refined rotations, global, neck, jaw and eyes (`flame_pose_lr`:
+/// 1e-5 rad per step).
+pub const LR_FLAME_POSE: f64 = 1e-5;
+
+/// Learning rate of the refined translation (`flame_trans_lr`: 1e-6, in the model's units,
+/// metres for FLAME).
+pub const LR_FLAME_TRANSLATION: f64 = 1e-6;
+
 /// Adam's epsilon (method §6: 1e-15, as 3DGS; burn's default 1e-5 would damp the updates of
 /// parameters whose gradients are small).
 pub const ADAM_EPS: f64 = 1e-15;

@@ -29,6 +29,7 @@ pub mod lock;
 pub mod loss;
 pub mod metrics;
 pub mod progress;
+pub mod refine;
 pub mod signals;
 pub mod step;
 pub mod stop;
@@ -147,8 +148,10 @@ pub struct TrainReport {
 }
 
 /// What `train` writes into its output folder, removed by [`TrainOptions::force`].
-pub const OWNED: [&str; 8] = [
+pub const OWNED: [&str; 10] = [
     files::CONFIG,
+    refine::REFINED_NPZ,
+    refine::REFINED_INDEX,
     files::AVATAR_CONFIG,
     files::AVATAR,
     files::CHECKPOINTS,
@@ -218,12 +221,24 @@ fn write(path: &Path, text: &str) -> Result<()> {
 }
 
 /// The learning rates: `lr_decoders` for every parameter, `lr_encoders` for those under
-/// [`ENCODER_MODULES`].
+/// [`ENCODER_MODULES`], and FLAME refinement's three ([`refine`]).
 pub fn lr_scheduler(config: &TrainConfig) -> ModuleLrScheduler {
     ModuleLrSchedulerConfig::new(config.lr_decoders.into())
         .with_group(
             ParamGroup::from_any_predicates(ENCODER_MODULES.to_vec()),
             config.lr_encoders,
+        )
+        .with_group(
+            ParamGroup::from_predicate(refine::REFINE_EXPR),
+            config.lr_flame_expr,
+        )
+        .with_group(
+            ParamGroup::from_predicate(refine::REFINE_POSE),
+            config.lr_flame_pose,
+        )
+        .with_group(
+            ParamGroup::from_predicate(refine::REFINE_TRANSLATION),
+            config.lr_flame_translation,
         )
         .init()
         .expect("constant learning rates are valid")
@@ -682,8 +697,19 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
         None
     };
     let stop = options.stop.clone().unwrap_or_default();
+    let refine = if config.ablations.flame_refinement {
+        let timesteps = refine::Timesteps::of_dataset(&train_set)?;
+        Some(refine::FlameRefinement::new(
+            &head.model,
+            timesteps,
+            &device,
+        )?)
+    } else {
+        None
+    };
     let training = AvatarTraining {
         avatar,
+        refine,
         objective: Objective {
             weights: config.loss.clone(),
             vgg,
@@ -741,9 +767,13 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
     )?;
     let error = launched.result.error.as_ref().map(|e| e.to_string());
     let (reached, complete) = launch.outcome(options, error, launched.end_iteration)?;
-    let avatar = launched.result.model.avatar;
+    let model = launched.result.model;
+    let avatar = model.avatar;
     let avatar_path = out.join(files::AVATAR);
     if complete {
+        if let Some(refine) = &model.refine {
+            refine.refined().save(out)?;
+        }
         avatar.clone().save_file(&avatar_path).map_err(|e| {
             Error::invalid(avatar_path.display().to_string(), "save", e.to_string())
         })?;

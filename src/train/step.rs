@@ -12,6 +12,7 @@ use burn::train::{InferenceStep, TrainOutput, TrainStep};
 use super::loader::TrainBatch;
 use super::loss::{LossTerms, LossWeights, objective};
 use super::metrics::{Term, TermsInput};
+use super::refine::FlameRefinement;
 use super::stop::{Fault, StopControl};
 use crate::metrics::{VggPerceptual, psnr};
 use crate::model::Avatar;
@@ -55,6 +56,8 @@ impl Objective {
 pub struct AvatarTraining {
     /// The avatar.
     pub avatar: Avatar,
+    /// FLAME refinement ([`super::refine`]); `None`: the tracked meshes as they are.
+    pub refine: Option<FlameRefinement>,
     /// The loss settings.
     #[module(skip)]
     pub objective: Objective,
@@ -144,10 +147,15 @@ impl AvatarTraining {
     /// Forward pass and objective for one batch (any device; autodiff for training), with the
     /// VGG term when `vgg` is given. Returns the terms and the PSNR per frame (`[N]`).
     pub fn losses(&self, item: &TrainBatch, vgg: Option<&VggPerceptual>) -> (LossTerms, Tensor<1>) {
-        let out = self
-            .avatar
-            .forward(&item.batch)
-            .unwrap_or_else(|e| panic!("avatar forward: {e}"));
+        let batch = &item.batch;
+        let out = match &self.refine {
+            Some(refine) => {
+                let (vertices, condition) = refine.apply(batch);
+                self.avatar.render(condition, &batch.cameras, vertices)
+            }
+            None => self.avatar.forward(batch),
+        }
+        .unwrap_or_else(|e| panic!("avatar forward: {e}"));
         let terms = objective(
             out.renders.clone(),
             item.batch.images.clone(),

@@ -321,6 +321,7 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
         panels: 0,
         backend: texavatars::device::BackendKind::Flex,
         paths: texavatars::data::PathPolicy::InsideRoot,
+        tracked: false,
     };
     let report = texavatars::eval::run::evaluate(&opts, &mut |_| {}).expect("eval");
     let m = &report.means["test"];

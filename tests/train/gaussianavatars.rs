@@ -26,6 +26,7 @@ fn tiny(iterations: usize) -> GaTrainConfig {
         log_every: 0,
         seed: 1,
         backend: BackendKind::Flex,
+        flame_refinement: true,
     }
 }
 
@@ -47,6 +48,7 @@ fn eval_loss(model: &GaModel, device: &Device) -> f64 {
                 &batch_of(&[i], device),
                 model.sh_degree,
                 false,
+                None,
             );
             f.terms.total.into_scalar::<f32>() as f64
         })
@@ -90,6 +92,19 @@ fn loss_goes_down(backend: BackendKind, iterations: usize, name: &str) {
     );
     assert!(r.output.join("flame_param.npz").is_file());
     assert!(out.join(files::IDENTITY).is_file());
+    // FLAME refinement is on by default: the refined parameters moved from the tracked ones.
+    let refined = texavatars::train::refine::RefinedParams::load(&out)
+        .unwrap()
+        .expect("refined parameters");
+    let train = texavatars::data::HeadDataset::open(
+        data(),
+        texavatars::data::Split::Train,
+        std::sync::Arc::new(head().model.clone()),
+    )
+    .unwrap();
+    let tracked = texavatars::train::refine::Timesteps::of_dataset(&train).unwrap();
+    assert_eq!(refined.keys, tracked.keys);
+    assert_ne!(refined.poses, tracked.tracked);
 }
 
 #[test]
@@ -271,19 +286,25 @@ fn each_attribute_trains_at_gaussianavatars_rate() {
     #[derive(Module, Debug)]
     struct Wrap {
         model: GaModel,
+        refine: texavatars::train::refine::FlameRefinement,
     }
     let device = Device::flex().autodiff();
     let w = Wrap {
         model: GaModel::init(5, 1, 3, &device).unwrap(),
+        refine: super::refinement(&device),
     };
     let m = &w.model;
     let before = m.to_stored().0;
+    let r = &w.refine;
     let loss = m.xyz.val().sum()
         + m.features_dc.val().sum()
         + m.features_rest.as_ref().unwrap().val().sum()
         + m.opacity.val().sum()
         + m.scaling.val().sum()
-        + m.rotation.val().sum();
+        + m.rotation.val().sum()
+        + r.refine_expr.val().sum()
+        + r.refine_pose.val().sum()
+        + r.refine_translation.val().sum();
     let grads = GradientsParams::from_grads(loss.backward(), &w);
     let (total, extent) = (100, 2.5f32);
     let mut lr = ga::lr_scheduler(total, extent);
@@ -327,6 +348,28 @@ fn each_attribute_trains_at_gaussianavatars_rate() {
         moved(&after.quats, &before.quats),
         c::ROTATION_LR,
     );
+    // FLAME refinement (`FlameGaussianModel.training_setup`: expr, pose, translation groups).
+    let values = |t: Tensor<2>| -> Vec<f32> { t.into_data().iter::<f32>().collect() };
+    let zeros = |n: usize| vec![0.0f32; n];
+    for (name, got, want) in [
+        (
+            "refine_expr",
+            values(w.refine.refine_expr.val()),
+            c::FLAME_EXPR_LR,
+        ),
+        (
+            "refine_pose",
+            values(w.refine.refine_pose.val()),
+            c::FLAME_POSE_LR,
+        ),
+        (
+            "refine_translation",
+            values(w.refine.refine_translation.val()),
+            c::FLAME_TRANS_LR,
+        ),
+    ] {
+        check(name, moved(&got, &zeros(got.len())), want);
+    }
     let sh = moved(&after.sh, &before.sh);
     // [N, 4, 3] per Gaussian: the DC coefficient first, then the three degree-1 ones.
     for (i, v) in sh.into_iter().enumerate() {

@@ -1,0 +1,368 @@
+//! FLAME refinement: per-timestep corrections to the tracked translation, rotations
+//! (global, neck, jaw, eyes) and expression of every training frame, optimised with the
+//! avatar, as GaussianAvatars (`scene/flame_gaussian_model.py`,
+//! `FlameGaussianModel.training_setup`, on unless `--not_finetune_flame_params`) and the
+//! TexAvatars reference (the same file and method) do by default.
+//!
+//! - The corrections are parameters `[T, ·]` (T: the training split's distinct `flame_param`
+//!   files), zero at the start; a frame's parameters are its tracked ones plus its row.
+//!   Gradients reach them through the lift's vertices and the tensor LBS ([`Rig`]).
+//! - Learning rates (Adam, constant), the peers' `flame_expr_lr` 1e-3, `flame_pose_lr` 1e-5
+//!   (all four rotations) and `flame_trans_lr` 1e-6 ([`super::constants`]), are burn
+//!   parameter groups matched on the field names ([`REFINE_EXPR`], ...).
+//! - The networks' condition is built from the refined expression and pose, detached, as the
+//!   reference's `select_mesh_by_timestep` does (`exp.detach()`): the refinement moves the
+//!   mesh; the condition follows without a gradient.
+//! - A frame whose `flame_param` file is not a training one (another split's timestep) keeps
+//!   its tracked parameters and vertices.
+//! - The refined parameters are written with the avatar ([`RefinedParams`],
+//!   `refined_flame_param.npz` in GaussianAvatars' multi-frame layout plus a JSON index) and
+//!   `texavatars export flame-param` writes them as VHAP `flame_param` files.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::Arc;
+
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::data::{HeadBatch, HeadDataset};
+use crate::error::{Error, Result};
+use crate::head::rig::POSE_LEN;
+use crate::head::{HeadModel, HeadPose, Rig};
+use crate::io::npz::{Npz, NpzOut};
+
+/// Field name (and burn parameter path part) of the expression corrections.
+pub const REFINE_EXPR: &str = "refine_expr";
+/// Field name of the pose corrections (global, neck, jaw, eyes).
+pub const REFINE_POSE: &str = "refine_pose";
+/// Field name of the translation corrections.
+pub const REFINE_TRANSLATION: &str = "refine_translation";
+
+/// File of the refined parameters in a training output folder (GaussianAvatars'
+/// `flame_param.npz` layout: `(T, ·)` per-frame arrays, `shape` and `static_offset` once).
+pub const REFINED_NPZ: &str = "refined_flame_param.npz";
+/// Its index: which `flame_param` file and timestep each row refines.
+pub const REFINED_INDEX: &str = "refined_flame_param.json";
+
+/// The training frames' timesteps: one row per distinct `flame_param` file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Timesteps {
+    /// `flame_param_path` of each row, relative to the transforms file's folder, as the JSON
+    /// writes it ([`HeadDataset::flame_key`]).
+    pub keys: Vec<String>,
+    /// VHAP's `timestep_index` of each row.
+    pub timesteps: Vec<usize>,
+    /// The tracked parameters of each row, posed with the dataset's subject.
+    pub tracked: Vec<HeadPose>,
+    /// Row of each key.
+    index: HashMap<String, usize>,
+}
+
+impl Timesteps {
+    /// The distinct timesteps of `dataset`, in the order of their first frame.
+    pub fn of_dataset(dataset: &HeadDataset) -> Result<Self> {
+        let mut keys = Vec::new();
+        let mut timesteps = Vec::new();
+        let mut tracked = Vec::new();
+        let mut index = HashMap::new();
+        for (i, frame) in dataset.frames().iter().enumerate() {
+            let key = dataset.flame_key(i)?;
+            if index.contains_key(&key) {
+                continue;
+            }
+            let c = dataset.conditioning(i)?;
+            let id = dataset.identity();
+            let pose = HeadPose {
+                shape: id.shape.clone(),
+                expr: c.expr.clone(),
+                rotation: std::array::from_fn(|k| c.pose[k]),
+                neck: std::array::from_fn(|k| c.pose[3 + k]),
+                jaw: std::array::from_fn(|k| c.pose[6 + k]),
+                eyes: std::array::from_fn(|k| c.pose[9 + k]),
+                translation: c.translation,
+                static_offset: id.static_offset.clone(),
+            };
+            index.insert(key.clone(), keys.len());
+            keys.push(key);
+            timesteps.push(frame.timestep);
+            tracked.push(pose);
+        }
+        Ok(Timesteps {
+            keys,
+            timesteps,
+            tracked,
+            index,
+        })
+    }
+
+    /// Number of rows.
+    pub fn len(&self) -> usize {
+        self.keys.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.keys.is_empty()
+    }
+
+    /// The row of `key`, when it is a training timestep.
+    pub fn row(&self, key: &str) -> Option<usize> {
+        self.index.get(key).copied()
+    }
+}
+
+/// The refinement parameters (corrections, zero at the start) and the rig that poses them.
+///
+/// # Shapes
+/// - `refine_expr`: [T, E]; `refine_pose`: [T, 15]; `refine_translation`: [T, 3]
+#[derive(Module, Debug)]
+pub struct FlameRefinement {
+    /// Expression corrections.
+    pub refine_expr: Param<Tensor<2>>,
+    /// Pose corrections `[global 3, neck 3, jaw 3, eyes 6]` (axis-angle).
+    pub refine_pose: Param<Tensor<2>>,
+    /// Translation corrections.
+    pub refine_translation: Param<Tensor<2>>,
+    /// The subject's rig (constant tensors).
+    pub rig: Rig,
+    /// The rows' files and tracked values.
+    #[module(skip)]
+    pub timesteps: Arc<Timesteps>,
+}
+
+impl FlameRefinement {
+    /// Zero corrections for the timesteps of `timesteps`, posed by `model` with their subject.
+    pub fn new(model: &HeadModel, timesteps: Timesteps, device: &Device) -> Result<Self> {
+        let Some(first) = timesteps.tracked.first() else {
+            return Err(Error::invalid(
+                "flame refinement",
+                "frames",
+                "no training timesteps",
+            ));
+        };
+        let rig = Rig::new(model, first, device)?;
+        let t = timesteps.len();
+        let zeros = |w: usize| Param::from_tensor(Tensor::<2>::zeros([t, w], device));
+        Ok(FlameRefinement {
+            refine_expr: zeros(rig.num_expr()),
+            refine_pose: zeros(POSE_LEN),
+            refine_translation: zeros(3),
+            rig,
+            timesteps: Arc::new(timesteps),
+        })
+    }
+
+    /// The posed vertices and the networks' condition of `batch` with the refined
+    /// parameters of its training frames (others keep the batch's).
+    ///
+    /// # Shapes
+    /// - returns vertices [N, V, 3] and condition [N, E + 15 + 128]
+    pub fn apply(&self, batch: &HeadBatch) -> (Tensor<3>, Tensor<2>) {
+        let n = batch.cameras.len();
+        let mut vertices = Vec::with_capacity(n);
+        let mut condition = Vec::with_capacity(n);
+        for i in 0..n {
+            let own = |t: &Tensor<2>| t.clone().narrow(0, i, 1);
+            match self.timesteps.row(&batch.flame_keys[i]) {
+                Some(row) => {
+                    let at = |p: &Param<Tensor<2>>| p.val().narrow(0, row, 1);
+                    let expr = own(&batch.expr) + at(&self.refine_expr);
+                    let pose = own(&batch.pose) + at(&self.refine_pose);
+                    let translation = own(&batch.translation) + at(&self.refine_translation);
+                    vertices.push(self.rig.pose(expr.clone(), pose.clone(), translation));
+                    condition.push(Tensor::cat(
+                        vec![expr.detach(), pose.detach(), own(&batch.eta)],
+                        1,
+                    ));
+                }
+                None => {
+                    vertices.push(batch.vertices.clone().narrow(0, i, 1));
+                    condition.push(own(&batch.condition));
+                }
+            }
+        }
+        (Tensor::cat(vertices, 0), Tensor::cat(condition, 0))
+    }
+
+    /// The refined (absolute) parameters of every row.
+    pub fn refined(&self) -> RefinedParams {
+        let host =
+            |p: &Param<Tensor<2>>| -> Vec<f32> { p.val().into_data().iter::<f32>().collect() };
+        let (de, dp, dt) = (
+            host(&self.refine_expr),
+            host(&self.refine_pose),
+            host(&self.refine_translation),
+        );
+        let e = self.rig.num_expr();
+        let ts = &self.timesteps;
+        let poses = ts
+            .tracked
+            .iter()
+            .enumerate()
+            .map(|(r, p)| {
+                let mut q = p.clone();
+                for (k, x) in q.expr.iter_mut().enumerate() {
+                    *x += de[r * e + k];
+                }
+                let d = &dp[r * POSE_LEN..(r + 1) * POSE_LEN];
+                for k in 0..3 {
+                    q.rotation[k] += d[k];
+                    q.neck[k] += d[3 + k];
+                    q.jaw[k] += d[6 + k];
+                    q.translation[k] += dt[r * 3 + k];
+                }
+                for k in 0..6 {
+                    q.eyes[k] += d[9 + k];
+                }
+                q
+            })
+            .collect();
+        RefinedParams {
+            keys: ts.keys.clone(),
+            timesteps: ts.timesteps.clone(),
+            poses,
+        }
+    }
+}
+
+/// Refined FLAME parameters of a trained avatar: one [`HeadPose`] per training timestep.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RefinedParams {
+    /// `flame_param_path` of each row (relative to the transforms file's folder).
+    pub keys: Vec<String>,
+    /// `timestep_index` of each row.
+    pub timesteps: Vec<usize>,
+    /// The refined parameters (the subject's shape and static offsets included).
+    pub poses: Vec<HeadPose>,
+}
+
+/// The JSON index next to [`REFINED_NPZ`].
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RefinedIndex {
+    flame_param_path: Vec<String>,
+    timestep_index: Vec<usize>,
+}
+
+impl RefinedParams {
+    /// The parameters of `key`'s timestep, when it was refined.
+    pub fn get(&self, key: &str) -> Option<&HeadPose> {
+        self.keys
+            .iter()
+            .position(|k| k == key)
+            .map(|r| &self.poses[r])
+    }
+
+    /// Writes [`REFINED_NPZ`] and [`REFINED_INDEX`] into `dir`.
+    pub fn save(&self, dir: &Path) -> Result<()> {
+        let Some(first) = self.poses.first() else {
+            return Err(Error::invalid("refined FLAME parameters", "frames", "none"));
+        };
+        let t = self.poses.len();
+        let e = first.expr.len();
+        let rows = |f: &dyn Fn(&HeadPose) -> Vec<f32>| -> Vec<f32> {
+            self.poses.iter().flat_map(f).collect()
+        };
+        let npz = dir.join(REFINED_NPZ);
+        for p in &self.poses {
+            p.check_finite(&npz.display().to_string())?;
+        }
+        let mut out = NpzOut::default();
+        out.floats("translation", &[t, 3], rows(&|p| p.translation.to_vec()))
+            .floats("rotation", &[t, 3], rows(&|p| p.rotation.to_vec()))
+            .floats("neck_pose", &[t, 3], rows(&|p| p.neck.to_vec()))
+            .floats("jaw_pose", &[t, 3], rows(&|p| p.jaw.to_vec()))
+            .floats("eyes_pose", &[t, 6], rows(&|p| p.eyes.to_vec()))
+            .floats("expr", &[t, e], rows(&|p| p.expr.clone()))
+            .floats("shape", &[first.shape.len()], first.shape.clone())
+            .ints(
+                "timestep_index",
+                &[t],
+                self.timesteps.iter().map(|&x| x as i64).collect(),
+            );
+        if let Some(o) = &first.static_offset {
+            out.floats("static_offset", &[1, o.len(), 3], o.concat());
+        }
+        out.write(&npz)?;
+        let index = RefinedIndex {
+            flame_param_path: self.keys.clone(),
+            timestep_index: self.timesteps.clone(),
+        };
+        let path = dir.join(REFINED_INDEX);
+        std::fs::write(
+            &path,
+            serde_json::to_string_pretty(&index).expect("serialises") + "\n",
+        )
+        .map_err(|e| Error::io(&path, e))
+    }
+
+    /// Reads what [`RefinedParams::save`] wrote into `dir`; `None` when `dir` has no
+    /// [`REFINED_NPZ`] (a run without refinement).
+    pub fn load(dir: &Path) -> Result<Option<Self>> {
+        let npz = dir.join(REFINED_NPZ);
+        if !npz.is_file() {
+            return Ok(None);
+        }
+        let path = dir.join(REFINED_INDEX);
+        let what = path.display().to_string();
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let index: RefinedIndex = serde_json::from_str(&text).map_err(|e| {
+            Error::invalid(
+                &what,
+                format!("line {} column {}", e.line(), e.column()),
+                e.to_string(),
+            )
+        })?;
+        let poses = HeadPose::load_npz_frames(&npz)?;
+        let stored = Npz::open(&npz)?.ints("timestep_index")?.data;
+        let t = poses.len();
+        if index.flame_param_path.len() != t || index.timestep_index.len() != t {
+            return Err(Error::invalid(
+                &what,
+                "flame_param_path",
+                format!(
+                    "{} paths and {} timesteps for the {t} rows of {}",
+                    index.flame_param_path.len(),
+                    index.timestep_index.len(),
+                    npz.display()
+                ),
+            ));
+        }
+        if stored
+            .iter()
+            .map(|&x| x as usize)
+            .ne(index.timestep_index.iter().copied())
+        {
+            return Err(Error::invalid(
+                &what,
+                "timestep_index",
+                format!("differs from {}'s timestep_index", npz.display()),
+            ));
+        }
+        Ok(Some(RefinedParams {
+            keys: index.flame_param_path,
+            timesteps: index.timestep_index,
+            poses,
+        }))
+    }
+
+    /// Writes one VHAP `flame_param` file per row into `dir/flame_param/TTTTT.npz`
+    /// (`TTTTT`: the row's `timestep_index`), in the layout of VHAP's
+    /// `NeRFDatasetWriter.write_flame_param` (`vhap/export_as_nerf_dataset.py`). Returns
+    /// the files written.
+    pub fn export_vhap(&self, dir: &Path) -> Result<Vec<std::path::PathBuf>> {
+        let folder = dir.join("flame_param");
+        std::fs::create_dir_all(&folder).map_err(|e| Error::io(&folder, e))?;
+        self.timesteps
+            .iter()
+            .zip(&self.poses)
+            .map(|(t, p)| {
+                let path = folder.join(format!("{t:05}.npz"));
+                p.save_npz(&path)?;
+                Ok(path)
+            })
+            .collect()
+    }
+}
