@@ -291,6 +291,7 @@ pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf
             backend: BackendKind::Flex,
             paths: PathPolicy::InsideRoot,
             tracked: false,
+            renders: false,
         },
         &mut |l| progress(l),
     )?;

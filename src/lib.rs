@@ -41,6 +41,7 @@ pub mod mesh;
 pub mod metrics;
 pub mod model;
 pub mod splat;
+pub mod study;
 pub mod synth;
 pub mod texel;
 pub mod train;

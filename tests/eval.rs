@@ -37,6 +37,7 @@ fn trained_avatar_is_scored_on_every_split() {
         backend: BackendKind::Flex,
         paths: texavatars::data::PathPolicy::InsideRoot,
         tracked: false,
+        renders: false,
     };
     // Before training: a clear error naming the missing file.
     let e = evaluate(&opts, &mut |_| {}).unwrap_err().to_string();

@@ -5,6 +5,8 @@
 
 #[path = "train/gaussianavatars.rs"]
 mod gaussianavatars;
+#[path = "train/study.rs"]
+mod study;
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};

@@ -92,6 +92,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             PathPolicy::InsideRoot
         },
         tracked: a.tracked,
+        renders: false,
     };
     let report = evaluate(&opts, &mut |l| eprintln!("eval: {l}"))?;
     println!("{}", report.table);

@@ -8,6 +8,7 @@ pub mod head;
 pub mod metrics;
 pub mod render;
 pub mod splat;
+pub mod study;
 pub mod synth;
 pub mod train;
 pub mod uv;
@@ -56,6 +57,10 @@ pub enum Command {
     /// The Gaussian rasterizer on its own.
     #[command(subcommand)]
     Splat(splat::SplatCommand),
+    /// The paper's comparison: train and evaluate the full method, its ablations and
+    /// GaussianAvatars on several subjects and write Table 1 and Table 2 (resumable;
+    /// --plan / --run K / --collect to spread the runs over machines).
+    Study(study::StudyArgs),
     /// Render the synthetic multi-view head benchmark (VHAP / GaussianAvatars format).
     Synth(synth::SynthArgs),
     /// Train an avatar on a VHAP export (e.g. the synthetic benchmark's `union` folder).
@@ -87,6 +92,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Metrics(a) => metrics::run(a),
         Command::Render(a) => render::run(a),
         Command::Splat(c) => splat::run(c),
+        Command::Study(a) => study::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Train(a) => train::run(a),
         Command::Uv(c) => uv::run(c),

@@ -327,6 +327,131 @@ fn legend_position(size: (i32, i32), area: (i32, i32), occupied: &[(i32, i32)]) 
         .unwrap_or((m, m))
 }
 
+/// One bar per group of a [`bar_chart`]: its legend entry, colour and `(mean, error)` per
+/// group (an error of 0 draws no error bar; a non-finite mean draws no bar).
+#[derive(Clone, Debug)]
+pub struct Bars {
+    pub label: String,
+    /// sRGB colour.
+    pub color: [u8; 3],
+    pub values: Vec<(f64, f64)>,
+}
+
+/// Grouped bars with error bars (mean ± error): one group per entry of `groups`, one bar
+/// per entry of `bars` within each, a legend of the bars, into a PNG at `path`. The y axis
+/// spans the bars and their errors (from 0 when every value is positive and the smallest
+/// is below half the largest, else padded around them, so that small differences show).
+pub fn bar_chart(path: &Path, fig: &Figure, groups: &[String], bars: &[Bars]) -> Result<()> {
+    let what = path.display().to_string();
+    fonts()?;
+    let (w, h) = (fig.width.max(1), fig.height.max(1));
+    let mut buf = vec![255u8; w * h * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w as u32, h as u32)).into_drawing_area();
+        draw_bars(&root, fig, groups, bars)
+            .map_err(|e| plot_error(&what, e.source().map_or(e.to_string(), |s| s.to_string())))?;
+        root.present().map_err(|e| plot_error(&what, e))?;
+    }
+    let floats: Vec<f32> = buf.iter().map(|&v| v as f32 / 255.0).collect();
+    io::image::write_png(path, w, h, &floats)
+}
+
+fn draw_bars<'a>(
+    root: &DrawingArea<BitMapBackend<'a>, Shift>,
+    fig: &Figure,
+    groups: &[String],
+    bars: &[Bars],
+) -> DrawResult<'a> {
+    let s = (fig.width as f64 / 800.0).min(fig.height as f64 / 500.0);
+    let px = |v: f64| (v * s).max(10.0);
+    let ink = RGBColor(40, 40, 40);
+    root.fill(&WHITE)?;
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for b in bars {
+        for &(m, e) in b.values.iter().filter(|(m, _)| m.is_finite()) {
+            lo = lo.min(m - e.abs());
+            hi = hi.max(m + e.abs());
+        }
+    }
+    if !lo.is_finite() {
+        (lo, hi) = (0.0, 1.0);
+    }
+    let y = if lo > 0.0 && lo < 0.5 * hi {
+        0.0..hi * 1.05
+    } else {
+        let pad = 0.1 * (hi - lo).max(1e-9);
+        lo - pad..hi + pad
+    };
+    let n = groups.len().max(1);
+    let k = bars.len().max(1);
+    let mut chart = ChartBuilder::on(root)
+        .caption(&fig.title, (FONT, px(24.0)).into_font().color(&ink))
+        .margin((12.0 * s).max(4.0) as u32)
+        .margin_right((24.0 * s).max(6.0) as u32)
+        .x_label_area_size(px(48.0) as u32)
+        .y_label_area_size(px(72.0) as u32)
+        .build_cartesian_2d(0.0..n as f64, y.clone())?;
+    let names = groups.to_vec();
+    let xfmt = move |v: &f64| {
+        let i = v.floor() as usize;
+        if (v - i as f64 - 0.5).abs() < 1e-6 {
+            names.get(i).cloned().unwrap_or_default()
+        } else {
+            String::new()
+        }
+    };
+    let yfmt = |v: &f64| tick_label(*v);
+    chart
+        .configure_mesh()
+        .x_desc(&fig.x_label)
+        .y_desc(&fig.y_label)
+        .x_labels(2 * n + 1)
+        .x_label_formatter(&xfmt)
+        .y_label_formatter(&yfmt)
+        .disable_x_mesh()
+        .label_style((FONT, px(15.0)).into_font().color(&ink))
+        .axis_desc_style((FONT, px(17.0)).into_font().color(&ink))
+        .bold_line_style(BLACK.mix(0.12))
+        .light_line_style(BLACK.mix(0.0))
+        .axis_style(ink)
+        .draw()?;
+    let width = 0.8 / k as f64;
+    let base = y.start.max(0.0).min(y.end);
+    for (j, b) in bars.iter().enumerate() {
+        let color = RGBColor(b.color[0], b.color[1], b.color[2]);
+        let x0 = |g: usize| g as f64 + 0.1 + j as f64 * width;
+        let rects: Vec<_> = b
+            .values
+            .iter()
+            .enumerate()
+            .filter(|(_, (m, _))| m.is_finite())
+            .map(|(g, &(m, _))| Rectangle::new([(x0(g), base), (x0(g) + width, m)], color.filled()))
+            .collect();
+        let ann = chart.draw_series(rects)?;
+        ann.label(&b.label)
+            .legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 16, y + 6)], color.filled()));
+        let errs: Vec<_> = b
+            .values
+            .iter()
+            .enumerate()
+            .filter(|(_, (m, e))| m.is_finite() && *e > 0.0)
+            .map(|(g, &(m, e))| {
+                let xc = x0(g) + 0.5 * width;
+                PathElement::new(vec![(xc, m - e), (xc, m + e)], ink.stroke_width(2))
+            })
+            .collect();
+        chart.draw_series(errs)?;
+    }
+    chart
+        .configure_series_labels()
+        .label_font((FONT, px(14.0)).into_font().color(&ink))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK.mix(0.3))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()?;
+    Ok(())
+}
+
 /// The text size of a panel header for image columns `column_width` pixels wide: 6 % of the
 /// width, at least 12 px.
 pub fn header_font_px(column_width: usize) -> f64 {

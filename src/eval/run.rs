@@ -62,6 +62,9 @@ pub struct EvalOptions {
     /// split's) is posed with the refined parameters, as GaussianAvatars' `render.py` does;
     /// held-out and FREE timesteps were never refined and keep their tracked ones either way.
     pub tracked: bool,
+    /// Also write the render and the ground truth of each panel's frame on their own
+    /// (`images/SPLIT/TTTTT_CC_{render,gt}.png`; `texavatars study` puts runs side by side).
+    pub renders: bool,
 }
 
 /// One scored image.
@@ -236,6 +239,11 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
                 let p = panel(&gt, &render, h, w, scores.psnr)?;
                 let png = dir.join(format!("{t:05}_{c:02}.png"));
                 io::image::write_png(&png, p.width, p.height, &p.rgb)?;
+                if opts.renders {
+                    let name = |kind: &str| dir.join(format!("{t:05}_{c:02}_{kind}.png"));
+                    io::image::write_png(&name("render"), w, h, &render)?;
+                    io::image::write_png(&name("gt"), w, h, &gt)?;
+                }
             }
             images.push(ImageScore {
                 split: split.clone(),

@@ -322,6 +322,7 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
         backend: texavatars::device::BackendKind::Flex,
         paths: texavatars::data::PathPolicy::InsideRoot,
         tracked: false,
+        renders: false,
     };
     let report = texavatars::eval::run::evaluate(&opts, &mut |_| {}).expect("eval");
     let m = &report.means["test"];

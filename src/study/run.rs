@@ -1,0 +1,343 @@
+//! Running a study: its data, each run (train then evaluate, resumable), the estimate of
+//! the whole study's wall time, and the plan for running it elsewhere.
+//!
+//! Folders under `OUT`: `data/NAME/` (a `synth` subject's benchmark), `runs/SUBJECT/
+//! VARIANT-seedS/{train,eval}/` and `run.json` there once the run is finished (its wall
+//! times). A run with `run.json` is skipped; one without continues its training with
+//! `--resume` semantics and evaluates again.
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use super::config::{RunSpec, Study, Variant};
+use crate::data::{PathPolicy, Split};
+use crate::device::BackendKind;
+use crate::error::{Error, Result};
+use crate::eval::run::{EvalOptions, evaluate, head_for};
+use crate::head::HeadAsset;
+use crate::train::TrainOptions;
+
+/// The file that marks a finished run.
+pub const FINISHED: &str = "run.json";
+
+/// What a finished run records.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunRecord {
+    pub id: String,
+    pub variant: Variant,
+    pub seed: u64,
+    pub iterations: usize,
+    /// Wall time of the training this record's process did (a resumed run: its part).
+    pub train_seconds: f64,
+    pub eval_seconds: f64,
+}
+
+/// A run's folder.
+pub fn run_dir(out: &Path, run: &RunSpec) -> PathBuf {
+    out.join("runs")
+        .join(&run.subject)
+        .join(format!("{}-seed{}", run.variant.name(), run.seed))
+}
+
+/// The split folder of subject `name`.
+pub fn subject_data(study: &Study, out: &Path, name: &str) -> Result<PathBuf> {
+    let s = study
+        .subject(name)
+        .ok_or_else(|| Error::invalid(study.path.display().to_string(), "subjects", name))?;
+    Ok(match &s.data {
+        Some(d) => d.clone(),
+        None => out.join("data").join(&s.name).join("union"),
+    })
+}
+
+/// Generates every `synth` subject's benchmark that is not complete yet (the synthetic
+/// benchmark skips what is already there). Run it once before runs start in parallel.
+pub fn prepare(study: &Study, out: &Path, progress: &mut dyn FnMut(&str)) -> Result<()> {
+    let head = HeadAsset::embedded()?;
+    for s in &study.config.subjects {
+        if let Some(subject) = s.synth {
+            let config = crate::synth::SynthConfig {
+                subject,
+                ..study.synth.clone()
+            };
+            let dir = out.join("data").join(&s.name);
+            let t0 = Instant::now();
+            let summary = crate::synth::generate(&config, &head, &dir, &mut |_| {})?;
+            progress(&format!(
+                "data {}: synthetic subject {subject}, {} images ({} timesteps rendered now) in {:.1} s",
+                s.name,
+                summary.images,
+                summary.rendered_timesteps,
+                t0.elapsed().as_secs_f64()
+            ));
+        } else if let Some(d) = &s.data
+            && !d.join(Split::Train.file_name()).is_file()
+        {
+            return Err(Error::invalid(
+                study.path.display().to_string(),
+                format!("subjects[{}].data", s.name),
+                format!("{} has no {}", d.display(), Split::Train.file_name()),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The record of a finished run, `None` when it has not finished.
+pub fn finished(out: &Path, run: &RunSpec) -> Option<RunRecord> {
+    let text = std::fs::read_to_string(run_dir(out, run).join(FINISHED)).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+/// Trains and evaluates `run` unless it has finished (then returns its record). Training
+/// continues from the run's newest checkpoint when there is one.
+pub fn run_one(
+    study: &Study,
+    out: &Path,
+    run: &RunSpec,
+    backend: Option<BackendKind>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<RunRecord> {
+    if let Some(r) = finished(out, run) {
+        return Ok(r);
+    }
+    let dir = run_dir(out, run);
+    let data = subject_data(study, out, &run.subject)?;
+    if !data.join(Split::Train.file_name()).is_file() {
+        return Err(Error::invalid(
+            data.display().to_string(),
+            Split::Train.file_name(),
+            "missing: run `texavatars study --prepare` (or the whole study) first",
+        ));
+    }
+    let train_dir = dir.join("train");
+    let mut options = TrainOptions::new(&data, &train_dir);
+    // Continue a run this study started (its config is there); start one that never began.
+    options.resume = train_dir.join(crate::train::files::CONFIG).is_file()
+        || train_dir
+            .join(crate::gaussianavatars::train::ga_files::CONFIG)
+            .is_file();
+    options.backend = backend;
+    options.app_log = false;
+    options.handle_signals = true;
+    let head = head_for(&data)?;
+    options.head = Some(head);
+    let t0 = Instant::now();
+    let (iterations, complete) = match (study.train_config(run), study.ga_config(run)) {
+        (Some(c), _) => {
+            let r = crate::train::train(&c, &options)?;
+            (c.iterations, r.complete)
+        }
+        (None, Some(c)) => {
+            let r = crate::gaussianavatars::train::train(&c, &options)?;
+            (c.iterations, r.complete)
+        }
+        (None, None) => {
+            return Err(Error::invalid(
+                study.path.display().to_string(),
+                "gaussianavatars",
+                "missing for the gaussianavatars variant",
+            ));
+        }
+    };
+    let train_seconds = t0.elapsed().as_secs_f64();
+    if !complete {
+        return Err(Error::invalid(
+            run.id(),
+            "train",
+            "stopped before its last iteration; run the study again to continue it",
+        ));
+    }
+    progress(&format!(
+        "{}: trained in {train_seconds:.0} s; evaluating",
+        run.id()
+    ));
+    let t1 = Instant::now();
+    let e = &study.config.eval;
+    let opts = EvalOptions {
+        data: data.clone(),
+        run: train_dir,
+        out: dir.join("eval"),
+        splits: vec![Split::Val, Split::Test, Split::Free],
+        extra: Vec::new(),
+        head: None,
+        lpips: e.lpips,
+        stride: e.stride,
+        panels: e.panels,
+        backend: backend.unwrap_or(BackendKind::Flex),
+        paths: PathPolicy::InsideRoot,
+        tracked: false,
+        renders: true,
+    };
+    evaluate(&opts, &mut |l| {
+        progress(&format!("{}: eval: {l}", run.id()))
+    })?;
+    let record = RunRecord {
+        id: run.id(),
+        variant: run.variant,
+        seed: run.seed,
+        iterations,
+        train_seconds,
+        eval_seconds: t1.elapsed().as_secs_f64(),
+    };
+    let path = dir.join(FINISHED);
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&record).expect("serialises") + "\n",
+    )
+    .map_err(|e| Error::io(&path, e))?;
+    Ok(record)
+}
+
+/// Seconds per iteration used by [`estimate`] before any run of the study has finished:
+/// measured on the 2-core reference machine (release build, `flex`, the demo's benchmark
+/// at `train_cpu.json`'s networks, 2026-12-03 and 2026-12-02; docs/performance.md): a
+/// TexAvatars step without VGG 0.082 s, with VGG 0.44 s; a GaussianAvatars step about
+/// 0.9 s on average over a 3,500-iteration run (it grows with densification); evaluation
+/// 0.45 s per image with LPIPS.
+pub const REFERENCE_STEP: f64 = 0.082;
+/// A TexAvatars step with the VGG loss on the reference machine (s).
+pub const REFERENCE_VGG_STEP: f64 = 0.44;
+/// A GaussianAvatars step on the reference machine, averaged over a run (s).
+pub const REFERENCE_GA_STEP: f64 = 0.9;
+/// One run's evaluation at the demo's stride, with LPIPS, on the reference machine (s).
+pub const REFERENCE_EVAL_RUN: f64 = 80.0;
+
+/// Estimated seconds of the runs not finished yet: the finished runs' measured seconds per
+/// iteration of the same kind (TexAvatars or GaussianAvatars) when there are some, else the
+/// reference machine's ([`REFERENCE_STEP`]).
+pub fn estimate(study: &Study, out: &Path) -> (f64, usize) {
+    let runs = study.runs();
+    let done: Vec<RunRecord> = runs.iter().filter_map(|r| finished(out, r)).collect();
+    let per_iteration = |ga: bool| -> Option<f64> {
+        let (s, n) = done
+            .iter()
+            .filter(|r| (r.variant == Variant::Gaussianavatars) == ga && r.iterations > 0)
+            .fold((0.0, 0usize), |(s, n), r| {
+                (s + r.train_seconds / r.iterations as f64, n + 1)
+            });
+        (n > 0).then(|| s / n as f64)
+    };
+    let eval = if done.is_empty() {
+        REFERENCE_EVAL_RUN
+    } else {
+        done.iter().map(|r| r.eval_seconds).sum::<f64>() / done.len() as f64
+    };
+    let mut total = 0.0;
+    let mut left = 0;
+    for r in runs.iter().filter(|r| finished(out, r).is_none()) {
+        left += 1;
+        total += eval;
+        if let Some(c) = study.ga_config(r) {
+            total += c.iterations as f64 * per_iteration(true).unwrap_or(REFERENCE_GA_STEP);
+        } else if let Some(c) = study.train_config(r) {
+            total += match per_iteration(false) {
+                Some(s) => c.iterations as f64 * s,
+                None => {
+                    let vgg = if c.ablations.vgg {
+                        c.iterations - c.vgg_from().min(c.iterations)
+                    } else {
+                        0
+                    };
+                    (c.iterations - vgg) as f64 * REFERENCE_STEP + vgg as f64 * REFERENCE_VGG_STEP
+                }
+            };
+        }
+    }
+    (total, left)
+}
+
+/// Writes `OUT/plan/commands.txt` (one command line per run) and `OUT/plan/slurm.sh` (a
+/// Slurm array over them, after the data step) and returns the command lines. `exe` is the
+/// texavatars binary the commands call.
+pub fn plan(study: &Study, out: &Path, exe: &str) -> Result<Vec<String>> {
+    let runs = study.runs();
+    let config = study.path.display().to_string();
+    let outs = out.display().to_string();
+    let q = |s: &str| shell_quote(s);
+    let commands: Vec<String> = (0..runs.len())
+        .map(|k| {
+            format!(
+                "{} study --config {} --out {} --run {k}",
+                q(exe),
+                q(&config),
+                q(&outs)
+            )
+        })
+        .collect();
+    let dir = out.join("plan");
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    let write = |name: &str, text: String| -> Result<()> {
+        let p = dir.join(name);
+        let mut f = std::fs::File::create(&p).map_err(|e| Error::io(&p, e))?;
+        f.write_all(text.as_bytes()).map_err(|e| Error::io(&p, e))
+    };
+    let mut listing = String::new();
+    for (c, r) in commands.iter().zip(&runs) {
+        listing.push_str(&format!("{c}  # {}\n", r.id()));
+    }
+    write("commands.txt", listing)?;
+    let n = runs.len();
+    let slurm = format!(
+        "#!/bin/bash\n\
+         # texavatars study: {n} independent runs of {config}.\n\
+         # First, once (it generates the synthetic subjects' data):\n\
+         #   {exe} study --config {config} --out {outs} --prepare\n\
+         # then submit this array; every task trains and evaluates one run (a finished run is\n\
+         # skipped, an interrupted one resumes), and at the end:\n\
+         #   {exe} study --config {config} --out {outs} --collect\n\
+         #SBATCH --job-name=texavatars-study\n\
+         #SBATCH --array=0-{last}\n\
+         #SBATCH --cpus-per-task=2\n\
+         #SBATCH --output={outs}/plan/slurm-%A_%a.log\n\
+         set -euo pipefail\n\
+         {exe} study --config {config} --out {outs} --run \"$SLURM_ARRAY_TASK_ID\"\n",
+        last = n.saturating_sub(1),
+        exe = q(exe),
+        config = q(&config),
+        outs = q(&outs),
+    );
+    write("slurm.sh", slurm)?;
+    Ok(commands)
+}
+
+/// The `xargs -P` line that runs every run of the plan, `jobs` at a time.
+pub fn xargs_line(study: &Study, out: &Path, exe: &str, jobs: usize) -> String {
+    let n = study.runs().len();
+    format!(
+        "{exe} study --config {c} --out {o} --prepare && seq 0 {last} | xargs -P {jobs} -I{{}} \
+         {exe} study --config {c} --out {o} --run {{}} && {exe} study --config {c} --out {o} --collect",
+        exe = shell_quote(exe),
+        c = shell_quote(&study.path.display().to_string()),
+        o = shell_quote(&out.display().to_string()),
+        last = n.saturating_sub(1),
+    )
+}
+
+/// `s` as one shell word.
+fn shell_quote(s: &str) -> String {
+    if !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "/._-=:+,".contains(c))
+    {
+        s.to_string()
+    } else {
+        format!("'{}'", s.replace('\'', "'\\''"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shell_quote_keeps_plain_words_and_quotes_the_rest() {
+        assert_eq!(shell_quote("out/study_1"), "out/study_1");
+        assert_eq!(shell_quote("a b"), "'a b'");
+        assert_eq!(shell_quote("it's"), "'it'\\''s'");
+        assert_eq!(shell_quote(""), "''");
+    }
+}

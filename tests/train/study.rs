@@ -1,0 +1,219 @@
+//! `texavatars study` end to end on the tiny benchmark: two variants (the full method with
+//! two seeds, w/o eta), one subject, 4 iterations each. The whole study in one command
+//! writes the tables, charts, curves and panels; a second call skips every finished run;
+//! the same study through `--plan` (its command lines run one by one) and `--collect`
+//! gives the same tables, and a partial `--collect` names what has not finished.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use super::{data, out_dir};
+
+fn study_config(dir: &Path) -> PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let train = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
+    let config = serde_json::json!({
+        "subjects": [{ "name": "tiny", "data": data() }],
+        "train": train,
+        "iterations": 4,
+        "seeds": [1, 2],
+        "variants": ["full", "no-eta"],
+        "eval": { "stride": 40, "lpips": false, "panels": 1 }
+    });
+    let path = dir.join("study.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&config).unwrap()).unwrap();
+    path
+}
+
+fn study(config: &Path, out: &Path, extra: &[&str]) -> Output {
+    let o = Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .arg("study")
+        .arg("--config")
+        .arg(config)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .env_remove("BURN_DEVICE")
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    o
+}
+
+fn mtime(p: &Path) -> std::time::SystemTime {
+    std::fs::metadata(p).unwrap().modified().unwrap()
+}
+
+#[test]
+fn a_tiny_study_runs_resumes_and_collects_the_same_through_its_plan() {
+    let root = out_dir("study");
+    let config = study_config(&root);
+    let out = root.join("all");
+    let o = study(&config, &out, &[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("3 runs, 0 finished; the 3 left take about"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("run 3/3 tiny/no-eta-seed1: done"),
+        "{stderr}"
+    );
+    let report = out.join("report");
+    let table1 = std::fs::read_to_string(report.join("table1.md")).unwrap();
+    for row in [
+        "| Ours (full) | 1 |",
+        "| Ours (full) seed 1 | 1 |",
+        "| Ours (full) seed 2 | 1 |",
+        "| w/o eta | 1 |",
+    ] {
+        assert!(table1.contains(row), "{row}: {table1}");
+    }
+    assert!(!table1.contains("Not finished"), "{table1}");
+    let table2 = std::fs::read_to_string(report.join("table2.md")).unwrap();
+    assert!(
+        table2.contains("| w/o eta |") && table2.contains("PSNR on FREE:"),
+        "{table2}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report.join("tables.json")).unwrap())
+            .unwrap();
+    assert_eq!(json["runs"].as_array().unwrap().len(), 3);
+    assert!(json["missing"].as_array().unwrap().is_empty());
+    // The full row averages its seeds: its FREE PSNR lies between theirs.
+    let rows = json["rows"].as_array().unwrap();
+    let free_psnr = |label: &str| {
+        rows.iter().find(|r| r["label"] == label).unwrap()["splits"]["free"]["psnr"]
+            .as_f64()
+            .unwrap()
+    };
+    let (a, b) = (
+        free_psnr("Ours (full) seed 1"),
+        free_psnr("Ours (full) seed 2"),
+    );
+    let m = free_psnr("Ours (full)");
+    assert!((m - 0.5 * (a + b)).abs() < 1e-9, "{a} {b} {m}");
+    assert_ne!(a, b, "two seeds, two avatars");
+    for f in [
+        "bars_psnr.png",
+        "bars_ssim.png",
+        "bars_lpips.png",
+        "curves.png",
+    ] {
+        assert!(report.join(f).is_file(), "{f}");
+    }
+    // Panels: ground truth | full | w/o eta, and a zoomed row below.
+    let panels: Vec<PathBuf> = std::fs::read_dir(report.join("panels"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert!(!panels.is_empty());
+    let img = texavatars::io::image::read_rgb(&panels[0]).unwrap();
+    assert_eq!(img.width, 3 * 24, "{}", panels[0].display());
+    assert!(img.height > 32 + 24, "{}", img.height);
+
+    // Again: every run is finished and skipped, nothing retrained.
+    let marker = out.join("runs/tiny/full-seed1/run.json");
+    let before = mtime(&marker);
+    let o = study(&config, &out, &[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(
+        stderr.matches("finished already, skipped").count(),
+        3,
+        "{stderr}"
+    );
+    assert!(stderr.contains("3 runs, 3 finished"), "{stderr}");
+    assert_eq!(mtime(&marker), before);
+
+    // The plan: one command line per run and a Slurm array over them.
+    let planned = root.join("planned");
+    let o = study(&config, &planned, &["--plan"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("xargs -P 2"), "{stdout}");
+    let commands = std::fs::read_to_string(planned.join("plan/commands.txt")).unwrap();
+    let lines: Vec<&str> = commands.lines().collect();
+    assert_eq!(lines.len(), 3);
+    assert!(
+        lines[2].ends_with("--run 2  # tiny/no-eta-seed1"),
+        "{}",
+        lines[2]
+    );
+    let slurm = std::fs::read_to_string(planned.join("plan/slurm.sh")).unwrap();
+    assert!(slurm.contains("#SBATCH --array=0-2") && slurm.contains("$SLURM_ARRAY_TASK_ID"));
+    // Run the first command only: --collect names the other two as not finished.
+    let sh = |line: &str| {
+        let o = Command::new("sh")
+            .arg("-c")
+            .arg(line.split("  #").next().unwrap())
+            .env_remove("BURN_DEVICE")
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "{line}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    };
+    study(&config, &planned, &["--prepare"]);
+    sh(lines[0]);
+    study(&config, &planned, &["--collect"]);
+    let partial = std::fs::read_to_string(planned.join("report/table1.md")).unwrap();
+    assert!(
+        partial.contains("Not finished (2 of 3 runs): tiny/full-seed2, tiny/no-eta-seed1."),
+        "{partial}"
+    );
+    for line in &lines[1..] {
+        sh(line);
+    }
+    study(&config, &planned, &["--collect"]);
+    let collected = std::fs::read_to_string(planned.join("report/table1.md")).unwrap();
+    assert_eq!(
+        collected, table1,
+        "the plan's runs give the one-command study's table"
+    );
+    assert_eq!(
+        std::fs::read_to_string(planned.join("report/table2.md")).unwrap(),
+        table2
+    );
+}
+
+#[test]
+fn a_bad_study_config_names_its_field() {
+    let root = out_dir("study-bad");
+    std::fs::create_dir_all(&root).unwrap();
+    let train = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
+    for (config, field) in [
+        (
+            serde_json::json!({"subjects": [], "train": train, "seeds": [0], "variants": ["full"]}),
+            "subjects",
+        ),
+        (
+            serde_json::json!({"subjects": [{"name": "a b", "synth": 0}], "train": train, "seeds": [0], "variants": ["full"]}),
+            "subjects[0].name",
+        ),
+        (
+            serde_json::json!({"subjects": [{"name": "a", "synth": 0, "data": "x"}], "train": train, "seeds": [0], "variants": ["full"]}),
+            "subjects[0]",
+        ),
+        (
+            serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train, "seeds": [0], "variants": ["gaussianavatars"]}),
+            "gaussianavatars",
+        ),
+        (
+            serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train, "seeds": [], "variants": ["full"]}),
+            "seeds",
+        ),
+    ] {
+        let path = root.join("bad.json");
+        std::fs::write(&path, config.to_string()).unwrap();
+        let e = texavatars::study::Study::load(&path)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field) && e.contains("bad.json"), "{field}: {e}");
+    }
+}
