@@ -662,13 +662,16 @@ fn refined_parameters_are_saved_and_exported(run: &Path, iterations: usize) {
     // translation, rotation, neck_pose, jaw_pose (1, 3), eyes_pose (1, 6), expr (1, E),
     // shape (S,), static_offset (1, V, 3) when the subject has one.
     let export = run.join("exported");
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
-        .args(["export", "flame-param", "--run"])
-        .arg(run)
-        .arg("--out")
-        .arg(&export)
-        .output()
-        .unwrap();
+    let export_cmd = || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
+            .args(["export", "flame-param", "--run"])
+            .arg(run)
+            .arg("--out")
+            .arg(&export)
+            .output()
+            .unwrap()
+    };
+    let o = export_cmd();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let files: Vec<_> = std::fs::read_dir(export.join("flame_param"))
         .unwrap()
@@ -692,13 +695,7 @@ fn refined_parameters_are_saved_and_exported(run: &Path, iterations: usize) {
         assert_eq!(&texavatars::head::HeadPose::load_npz(&f).unwrap(), p);
     }
     // A second export into the same folder is refused and leaves the files alone.
-    let again = std::process::Command::new(env!("CARGO_BIN_EXE_texavatars"))
-        .args(["export", "flame-param", "--run"])
-        .arg(run)
-        .arg("--out")
-        .arg(&export)
-        .output()
-        .unwrap();
+    let again = export_cmd();
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("not empty"));
     // The validation split (the same timesteps, another camera) is posed with the refined

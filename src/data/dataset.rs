@@ -261,17 +261,22 @@ impl HeadDataset {
         })
     }
 
-    /// Frame `index`'s `flame_param_path` relative to the transforms file's folder, as the
-    /// JSON writes it (the key of its timestep in FLAME refinement).
-    pub fn flame_key(&self, index: usize) -> Result<String> {
-        let frame = self.frame(index)?;
-        let Some(path) = &frame.flame_param else {
-            return Err(Error::invalid(
+    /// Frame `index`'s `flame_param` file (`from_transforms` refuses frames without one;
+    /// the error is for an index past the end).
+    fn flame_param(&self, index: usize) -> Result<&PathBuf> {
+        self.frame(index)?.flame_param.as_ref().ok_or_else(|| {
+            Error::invalid(
                 self.transforms.display().to_string(),
                 format!("frames[{index}].flame_param_path"),
                 "missing",
-            ));
-        };
+            )
+        })
+    }
+
+    /// Frame `index`'s `flame_param_path` relative to the transforms file's folder, as the
+    /// JSON writes it (the key of its timestep in FLAME refinement).
+    pub fn flame_key(&self, index: usize) -> Result<String> {
+        let path = self.flame_param(index)?;
         let dir = self.transforms.parent().unwrap_or(Path::new(""));
         Ok(path
             .strip_prefix(dir)
@@ -357,15 +362,7 @@ impl HeadDataset {
     /// The conditioning and posed vertices of frame `index`'s timestep (from the cache when
     /// it is on and holds them).
     pub fn conditioning(&self, index: usize) -> Result<Arc<Conditioning>> {
-        let frame = self.frame(index)?;
-        let Some(path) = &frame.flame_param else {
-            // `from_transforms` refuses frames without one.
-            return Err(Error::invalid(
-                self.transforms.display().to_string(),
-                format!("frames[{index}].flame_param_path"),
-                "missing",
-            ));
-        };
+        let path = self.flame_param(index)?;
         if let Some(cache) = &self.cache
             && let Some(c) = lock(cache).get(path)
         {

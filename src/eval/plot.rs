@@ -176,6 +176,26 @@ fn render_plot(fig: &Figure, series: &[Series]) -> std::result::Result<Vec<u8>, 
 type DrawResult<'a> =
     std::result::Result<(), DrawingAreaErrorKind<<BitMapBackend<'a> as DrawingBackend>::ErrorType>>;
 
+/// The chart frame both plots use: the title, margins and label areas for `fig`'s size
+/// (800x500 sizes scaled with the image, never below 10 px text).
+fn chart_builder<'a, 'b>(
+    root: &'a DrawingArea<BitMapBackend<'b>, Shift>,
+    fig: &Figure,
+) -> ChartBuilder<'a, 'b, BitMapBackend<'b>> {
+    let s = (fig.width as f64 / 800.0).min(fig.height as f64 / 500.0);
+    let px = |v: f64| (v * s).max(10.0);
+    let mut b = ChartBuilder::on(root);
+    b.caption(
+        &fig.title,
+        (FONT, px(24.0)).into_font().color(&RGBColor(40, 40, 40)),
+    )
+    .margin((12.0 * s).max(4.0) as u32)
+    .margin_right((24.0 * s).max(6.0) as u32)
+    .x_label_area_size(px(48.0) as u32)
+    .y_label_area_size(px(72.0) as u32);
+    b
+}
+
 fn draw_chart<'a, Y>(
     root: &DrawingArea<BitMapBackend<'a>, Shift>,
     fig: &Figure,
@@ -192,13 +212,7 @@ where
     let px = |v: f64| (v * s).max(10.0);
     let ink = RGBColor(40, 40, 40);
     root.fill(&WHITE)?;
-    let mut chart = ChartBuilder::on(root)
-        .caption(&fig.title, (FONT, px(24.0)).into_font().color(&ink))
-        .margin((12.0 * s).max(4.0) as u32)
-        .margin_right((24.0 * s).max(6.0) as u32)
-        .x_label_area_size(px(48.0) as u32)
-        .y_label_area_size(px(72.0) as u32)
-        .build_cartesian_2d(x, y)?;
+    let mut chart = chart_builder(root, fig).build_cartesian_2d(x, y)?;
     let xfmt = |v: &f64| tick_label(*v);
     let yfmt = |v: &f64| tick_label(*v);
     chart
@@ -384,13 +398,7 @@ fn draw_bars<'a>(
     };
     let n = groups.len().max(1);
     let k = bars.len().max(1);
-    let mut chart = ChartBuilder::on(root)
-        .caption(&fig.title, (FONT, px(24.0)).into_font().color(&ink))
-        .margin((12.0 * s).max(4.0) as u32)
-        .margin_right((24.0 * s).max(6.0) as u32)
-        .x_label_area_size(px(48.0) as u32)
-        .y_label_area_size(px(72.0) as u32)
-        .build_cartesian_2d(0.0..n as f64, y.clone())?;
+    let mut chart = chart_builder(root, fig).build_cartesian_2d(0.0..n as f64, y.clone())?;
     let names = groups.to_vec();
     let xfmt = move |v: &f64| {
         let i = v.floor() as usize;
