@@ -217,3 +217,19 @@ fn a_bad_study_config_names_its_field() {
         assert!(e.contains(field) && e.contains("bad.json"), "{field}: {e}");
     }
 }
+
+#[test]
+fn shipped_study_configs_load() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    for (name, iterations) in [("study_cpu", 1_000), ("study_demo_budget", 3_500)] {
+        let s = texavatars::study::Study::load(&dir.join(format!("{name}.json"))).unwrap();
+        // 2 subjects x (2 seeds of the full method + 6 other variants).
+        assert_eq!(s.runs().len(), 16, "{name}");
+        assert_eq!(s.train.iterations, iterations, "{name}");
+        assert_eq!(
+            s.gaussianavatars.as_ref().unwrap().iterations,
+            iterations,
+            "{name}"
+        );
+    }
+}
