@@ -1,9 +1,10 @@
-//! One training iteration (render, objective, backward, Adam step) of the whole avatar on the
-//! CPU (flex), batch 1, without the VGG term (on only for the last part of a run; see
+//! One training iteration (render, objective, backward, Adam step) of the whole avatar
+//! (default on the CPU, flex), batch 1, without the VGG term (on only for the last part of a run; see
 //! docs/training.md for its cost).
 //!
 //! `cargo bench --bench train`; `TEXAVATARS_BENCH_CONFIG=cpu|paper` picks
-//! `configs/train_<name>.json` (default `cpu`). The images: the synthetic benchmark at 138 x 200
+//! `configs/train_<name>.json` (default `cpu`); `TEXAVATARS_BENCH_BACKEND=flex|cpu|wgpu`
+//! where it runs (default `flex`; `benches/gpu.sh` uses `wgpu`). The images: the synthetic benchmark at 138 x 200
 //! for `cpu` and at NeRSemble's 550 x 802 for `paper` (two cameras, generated once into a
 //! temporary folder before timing).
 
@@ -11,10 +12,10 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
-use burn::tensor::Device;
 use burn::train::TrainStep;
 use criterion::{Criterion, criterion_group, criterion_main};
 use texavatars::data::{HeadBatcher, HeadDataset, Split};
+use texavatars::device::BackendKind;
 use texavatars::head::HeadAsset;
 use texavatars::synth::{self, SynthConfig};
 use texavatars::train::{
@@ -51,7 +52,10 @@ fn bench(c: &mut Criterion) {
         ..SynthConfig::default()
     };
     synth::generate(&synth_cfg, &head, &data, &mut |_| {}).expect("synth");
-    let device = Device::flex().autodiff();
+    let backend_name = std::env::var("TEXAVATARS_BENCH_BACKEND").unwrap_or_else(|_| "flex".into());
+    let backend = <BackendKind as clap::ValueEnum>::from_str(&backend_name, true)
+        .unwrap_or_else(|e| panic!("TEXAVATARS_BENCH_BACKEND={backend_name}: {e}"));
+    let device = backend.autodiff_device();
     let mut avatar_cfg = config.avatar().expect("avatar config");
     avatar_cfg.net.condition.expression = head.model.num_expr;
     let avatar = avatar_cfg.init(&head.mesh, &device).expect("avatar");
@@ -82,13 +86,16 @@ fn bench(c: &mut Criterion) {
     group.warm_up_time(Duration::from_secs(3));
     group.measurement_time(Duration::from_secs(if name == "paper" { 60 } else { 10 }));
     let gaussians = model.as_ref().map_or(0, |m| m.avatar.num_gaussians());
-    group.bench_function(format!("flex_{w}x{h}_{gaussians}_gaussians"), |b| {
-        b.iter(|| {
-            let m = model.take().expect("model");
-            let out = m.step(batch.clone());
-            model = Some(optim.step(config.lr_decoders, m, out.grads));
-        })
-    });
+    group.bench_function(
+        format!("{backend_name}_{w}x{h}_{gaussians}_gaussians"),
+        |b| {
+            b.iter(|| {
+                let m = model.take().expect("model");
+                let out = m.step(batch.clone());
+                model = Some(optim.step(config.lr_decoders, m, out.grads));
+            })
+        },
+    );
     group.finish();
     let _ = std::fs::remove_dir_all(&data);
 }

@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# benches/gpu.sh: the one-shot check of texavatars on a machine with a GPU (issue 21.6).
+#
+#   bash benches/gpu.sh            # from the repository root or anywhere
+#
+# 1. builds the release binary;
+# 2. runs the GPU parity tests (the CubeCL kernels against their CPU references and the
+#    WGSL validation) on the machine's wgpu adapter;
+# 3. `bench fps` at paper scale (configs/paper.json networks, 550 x 802) on wgpu;
+# 4. one training step at paper scale (configs/train_paper.json, 550 x 802, batch 1) on wgpu
+#    (`cargo bench --bench train`);
+# and prints one table. Logs go to $GPU_SH_OUT (default target/gpu-sh/). Budget: under 10
+# minutes on a 16-core machine with a GPU; the release build is most of it from a clean
+# clone. Please report the table (issue tracker or README's figures).
+#
+# GPU_SH_QUICK=1 shrinks every stage (cpu networks, 138 x 200, few renders): a smoke test of
+# the script itself, e.g. on lavapipe; its figures say nothing about a GPU.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=${GPU_SH_OUT:-target/gpu-sh}
+mkdir -p "$out"
+quick=${GPU_SH_QUICK:-0}
+if [ "$quick" = 1 ]; then
+    net=configs/cpu.json; size=138x200; renders=5; rounds=1; bench_config=cpu
+else
+    net=configs/paper.json; size=550x802; renders=100; rounds=3; bench_config=paper
+fi
+target=${CARGO_TARGET_DIR:-target}
+t0=$(date +%s)
+stage() { echo "gpu.sh: $* ($(( $(date +%s) - t0 )) s)" >&2; }
+
+stage "1/4 release build"
+cargo build --release 2>&1 | tail -n 3 >&2
+exe="$target/release/texavatars"
+
+stage "2/4 GPU parity tests (wgpu)"
+adapter=$(vulkaninfo --summary 2>/dev/null | grep -m1 -E "deviceName" | sed 's/.*= //' || true)
+if cargo test --release --test gpu_kernels --test splat_gpu >"$out/tests.log" 2>&1; then
+    tests="passed ($(grep -h 'test result' "$out/tests.log" | awk '{s += $4} END {print s}') tests)"
+else
+    tests="FAILED (see $out/tests.log)"
+fi
+
+stage "3/4 bench fps ($net, $size, wgpu)"
+"$exe" bench fps --backend wgpu --net "$net" --size "$size" --renders "$renders" \
+    --rounds "$rounds" >"$out/fps.log" 2>&1 || true
+fps=$(grep -m1 "mean of" "$out/fps.log" | sed 's/^mean of [0-9]* rounds: //' || true)
+fps=${fps:-failed (see $out/fps.log)}
+
+stage "4/4 training step ($bench_config, wgpu)"
+TEXAVATARS_BENCH_CONFIG=$bench_config TEXAVATARS_BENCH_BACKEND=wgpu \
+    cargo bench --bench train >"$out/train.log" 2>&1 || true
+step=$(grep -A2 "train_iteration_" "$out/train.log" | grep -m1 -oE "time: +\[[^]]*\]" || true)
+step=${step:-failed (see $out/train.log)}
+
+total=$(( $(date +%s) - t0 ))
+{
+    echo
+    echo "| texavatars on $(hostname), $(date -u +%Y-%m-%d) | |"
+    echo "|---|---|"
+    echo "| commit | $(git rev-parse --short HEAD 2>/dev/null || echo unknown) |"
+    echo "| GPU | $(nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null | head -n1 || echo unknown) |"
+    echo "| Vulkan device | ${adapter:-unknown (vulkaninfo not installed)} |"
+    echo "| parity tests (gpu_kernels, splat_gpu) | $tests |"
+    echo "| bench fps, $net, $size, wgpu | $fps |"
+    echo "| training step, train_$bench_config, wgpu | $step |"
+    echo "| wall time of this script | ${total} s |"
+    if [ "$quick" = 1 ]; then
+        echo "| note | GPU_SH_QUICK=1: smoke test, not a measurement |"
+    fi
+} | tee "$out/table.md"
