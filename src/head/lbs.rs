@@ -91,6 +91,14 @@ impl HeadPose {
         p[9..].copy_from_slice(&self.eyes);
         p
     }
+
+    /// Sets the rotations from a 15-value pose vector (the inverse of [`Self::pose15`]).
+    pub fn set_pose15(&mut self, p: &[f32; 15]) {
+        self.rotation.copy_from_slice(&p[..3]);
+        self.neck.copy_from_slice(&p[3..6]);
+        self.jaw.copy_from_slice(&p[6..9]);
+        self.eyes.copy_from_slice(&p[9..]);
+    }
 }
 
 type M3 = [[f64; 3]; 3];

@@ -422,10 +422,7 @@ mod tests {
             let want = fd(&|p: &mut HeadPose, d| {
                 let mut pose = p.pose15();
                 pose[i] += d;
-                p.rotation.copy_from_slice(&pose[..3]);
-                p.neck.copy_from_slice(&pose[3..6]);
-                p.jaw.copy_from_slice(&pose[6..9]);
-                p.eyes.copy_from_slice(&pose[9..]);
+                p.set_pose15(&pose);
             });
             check(&format!("pose[{i}]"), gq[i], want);
         }

@@ -74,16 +74,14 @@ impl Timesteps {
             }
             let c = dataset.conditioning(i)?;
             let id = dataset.identity();
-            let pose = HeadPose {
+            let mut pose = HeadPose {
                 shape: id.shape.clone(),
                 expr: c.expr.clone(),
-                rotation: std::array::from_fn(|k| c.pose[k]),
-                neck: std::array::from_fn(|k| c.pose[3 + k]),
-                jaw: std::array::from_fn(|k| c.pose[6 + k]),
-                eyes: std::array::from_fn(|k| c.pose[9 + k]),
                 translation: c.translation,
                 static_offset: id.static_offset.clone(),
+                ..Default::default()
             };
+            pose.set_pose15(&c.pose);
             index.insert(key.clone(), keys.len());
             keys.push(key);
             timesteps.push(frame.timestep);
@@ -207,14 +205,13 @@ impl FlameRefinement {
                     *x += de[r * e + k];
                 }
                 let d = &dp[r * POSE_LEN..(r + 1) * POSE_LEN];
-                for k in 0..3 {
-                    q.rotation[k] += d[k];
-                    q.neck[k] += d[3 + k];
-                    q.jaw[k] += d[6 + k];
-                    q.translation[k] += dt[r * 3 + k];
+                let mut pose = q.pose15();
+                for (x, dx) in pose.iter_mut().zip(d) {
+                    *x += dx;
                 }
-                for k in 0..6 {
-                    q.eyes[k] += d[9 + k];
+                q.set_pose15(&pose);
+                for (x, dx) in q.translation.iter_mut().zip(&dt[r * 3..r * 3 + 3]) {
+                    *x += dx;
                 }
                 q
             })
