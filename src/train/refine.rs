@@ -40,8 +40,13 @@ pub const REFINE_POSE: &str = "refine_pose";
 /// Field name of the translation corrections.
 pub const REFINE_TRANSLATION: &str = "refine_translation";
 
-/// File of the refined parameters in a training output folder (GaussianAvatars'
-/// `flame_param.npz` layout: `(T, ·)` per-frame arrays, `shape` and `static_offset` once).
+/// File of the refined parameters in a training output folder, in the layout GaussianAvatars
+/// writes next to its `point_cloud.ply` and reads back (`scene/flame_gaussian_model.py`,
+/// `FlameGaussianModel.save_ply` / `load_ply`, indexed by `select_mesh_by_timestep`): row
+/// `t` of every `(T, ·)` array is timestep `t` (T: the largest refined timestep plus one;
+/// rows of timesteps that were not refined are zero, as `load_meshes` initialises them),
+/// `shape` `(S,)`, `static_offset` `(1, V, 3)`, `dynamic_offset` `(T, V, 3)` (zero), and
+/// `timestep_index` `(R,)`: the R timesteps that were refined.
 pub const REFINED_NPZ: &str = "refined_flame_param.npz";
 /// Its index: which `flame_param` file and timestep each row refines.
 pub const REFINED_INDEX: &str = "refined_flame_param.json";
@@ -220,6 +225,7 @@ impl FlameRefinement {
             keys: ts.keys.clone(),
             timesteps: ts.timesteps.clone(),
             poses,
+            num_vertices: self.rig.num_vertices(),
         }
     }
 }
@@ -233,6 +239,8 @@ pub struct RefinedParams {
     pub timesteps: Vec<usize>,
     /// The refined parameters (the subject's shape and static offsets included).
     pub poses: Vec<HeadPose>,
+    /// Vertices of the head model (the size of the file's offsets).
+    pub num_vertices: usize,
 }
 
 /// The JSON index next to [`REFINED_NPZ`].
@@ -254,34 +262,74 @@ impl RefinedParams {
 
     /// Writes [`REFINED_NPZ`] and [`REFINED_INDEX`] into `dir`.
     pub fn save(&self, dir: &Path) -> Result<()> {
-        let Some(first) = self.poses.first() else {
-            return Err(Error::invalid("refined FLAME parameters", "frames", "none"));
-        };
-        let t = self.poses.len();
-        let e = first.expr.len();
-        let rows = |f: &dyn Fn(&HeadPose) -> Vec<f32>| -> Vec<f32> {
-            self.poses.iter().flat_map(f).collect()
-        };
         let npz = dir.join(REFINED_NPZ);
-        for p in &self.poses {
-            p.check_finite(&npz.display().to_string())?;
+        let what = npz.display().to_string();
+        let Some(first) = self.poses.first() else {
+            return Err(Error::invalid(&what, "frames", "none"));
+        };
+        let (e, v) = (first.expr.len(), self.num_vertices);
+        // Row t of the file is timestep t (GaussianAvatars indexes `flame_param[k][[t]]`).
+        let t_len = self.timesteps.iter().max().map_or(0, |&t| t + 1);
+        let mut row_of = vec![None; t_len];
+        for (r, (&t, p)) in self.timesteps.iter().zip(&self.poses).enumerate() {
+            p.check_finite(&what)?;
+            if p.expr.len() != e {
+                return Err(Error::invalid(
+                    &what,
+                    "expr",
+                    format!("row {r} has {} coefficients, row 0 {e}", p.expr.len()),
+                ));
+            }
+            if let Some(q) = row_of[t].replace(r) {
+                return Err(Error::invalid(
+                    &what,
+                    "timestep_index",
+                    format!(
+                        "timestep {t} is refined twice ({} and {})",
+                        self.keys[q], self.keys[r]
+                    ),
+                ));
+            }
         }
+        let rows = |n: usize, f: &dyn Fn(&HeadPose) -> Vec<f32>| -> Vec<f32> {
+            row_of
+                .iter()
+                .flat_map(|r| match r {
+                    Some(r) => f(&self.poses[*r]),
+                    None => vec![0.0; n],
+                })
+                .collect()
+        };
+        let static_offset = match &first.static_offset {
+            Some(o) if o.len() == v => o.concat(),
+            Some(o) => {
+                return Err(Error::invalid(
+                    &what,
+                    "static_offset",
+                    format!("{} vertices, the head model has {v}", o.len()),
+                ));
+            }
+            None => vec![0.0; v * 3],
+        };
         let mut out = NpzOut::default();
-        out.floats("translation", &[t, 3], rows(&|p| p.translation.to_vec()))
-            .floats("rotation", &[t, 3], rows(&|p| p.rotation.to_vec()))
-            .floats("neck_pose", &[t, 3], rows(&|p| p.neck.to_vec()))
-            .floats("jaw_pose", &[t, 3], rows(&|p| p.jaw.to_vec()))
-            .floats("eyes_pose", &[t, 6], rows(&|p| p.eyes.to_vec()))
-            .floats("expr", &[t, e], rows(&|p| p.expr.clone()))
-            .floats("shape", &[first.shape.len()], first.shape.clone())
-            .ints(
-                "timestep_index",
-                &[t],
-                self.timesteps.iter().map(|&x| x as i64).collect(),
-            );
-        if let Some(o) = &first.static_offset {
-            out.floats("static_offset", &[1, o.len(), 3], o.concat());
-        }
+        out.floats(
+            "translation",
+            &[t_len, 3],
+            rows(3, &|p| p.translation.to_vec()),
+        )
+        .floats("rotation", &[t_len, 3], rows(3, &|p| p.rotation.to_vec()))
+        .floats("neck_pose", &[t_len, 3], rows(3, &|p| p.neck.to_vec()))
+        .floats("jaw_pose", &[t_len, 3], rows(3, &|p| p.jaw.to_vec()))
+        .floats("eyes_pose", &[t_len, 6], rows(6, &|p| p.eyes.to_vec()))
+        .floats("expr", &[t_len, e], rows(e, &|p| p.expr.clone()))
+        .floats("shape", &[first.shape.len()], first.shape.clone())
+        .floats("static_offset", &[1, v, 3], static_offset)
+        .floats("dynamic_offset", &[t_len, v, 3], vec![0.0; t_len * v * 3])
+        .ints(
+            "timestep_index",
+            &[self.timesteps.len()],
+            self.timesteps.iter().map(|&x| x as i64).collect(),
+        );
         out.write(&npz)?;
         let index = RefinedIndex {
             flame_param_path: self.keys.clone(),
@@ -312,18 +360,28 @@ impl RefinedParams {
                 e.to_string(),
             )
         })?;
-        let poses = HeadPose::load_npz_frames(&npz)?;
-        let stored = Npz::open(&npz)?.ints("timestep_index")?.data;
-        let t = poses.len();
-        if index.flame_param_path.len() != t || index.timestep_index.len() != t {
+        let frames = HeadPose::load_npz_frames(&npz)?;
+        let mut z = Npz::open(&npz)?;
+        let stored = z.ints("timestep_index")?.data;
+        let offsets = z.floats("dynamic_offset")?.shape;
+        let num_vertices = match offsets.as_slice() {
+            [t, v, 3] if *t == frames.len() => *v,
+            _ => {
+                return Err(Error::invalid(
+                    npz.display().to_string(),
+                    "dynamic_offset",
+                    format!("shape {offsets:?}, expected ({}, V, 3)", frames.len()),
+                ));
+            }
+        };
+        if index.flame_param_path.len() != index.timestep_index.len() {
             return Err(Error::invalid(
                 &what,
                 "flame_param_path",
                 format!(
-                    "{} paths and {} timesteps for the {t} rows of {}",
+                    "{} paths for {} timesteps",
                     index.flame_param_path.len(),
-                    index.timestep_index.len(),
-                    npz.display()
+                    index.timestep_index.len()
                 ),
             ));
         }
@@ -338,10 +396,28 @@ impl RefinedParams {
                 format!("differs from {}'s timestep_index", npz.display()),
             ));
         }
+        let poses = index
+            .timestep_index
+            .iter()
+            .map(|&t| {
+                frames.get(t).cloned().ok_or_else(|| {
+                    Error::invalid(
+                        &what,
+                        "timestep_index",
+                        format!(
+                            "timestep {t}, but {} has {} rows",
+                            npz.display(),
+                            frames.len()
+                        ),
+                    )
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
         Ok(Some(RefinedParams {
             keys: index.flame_param_path,
             timesteps: index.timestep_index,
             poses,
+            num_vertices,
         }))
     }
 
@@ -361,5 +437,109 @@ impl RefinedParams {
                 Ok(path)
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(k: f32) -> HeadPose {
+        HeadPose {
+            shape: vec![0.5, -0.25, 0.125, 1.0],
+            expr: (0..5).map(|i| k + i as f32 * 0.01).collect(),
+            rotation: [k, 0.1, 0.2],
+            neck: [0.0, k, 0.0],
+            jaw: [k * 0.5, 0.0, 0.0],
+            eyes: [k, 0.0, 0.0, 0.0, k, 0.0],
+            translation: [0.0, 0.0, k],
+            static_offset: None,
+        }
+    }
+
+    fn params() -> RefinedParams {
+        RefinedParams {
+            keys: vec![
+                "flame_param/00003.npz".into(),
+                "flame_param/00001.npz".into(),
+            ],
+            timesteps: vec![3, 1],
+            poses: vec![pose(1.0), pose(2.0)],
+            num_vertices: 6,
+        }
+    }
+
+    fn temp(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("texavatars-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).expect("temp dir");
+        d
+    }
+
+    /// The file reads as GaussianAvatars reads its own `flame_param.npz`
+    /// (`scene/flame_gaussian_model.py`): `load_ply` takes every array as is,
+    /// `select_mesh_by_timestep(t)` takes `shape[None]`, row `[t]` of `expr`, `rotation`,
+    /// `neck_pose`, `jaw_pose`, `eyes_pose`, `translation` and `dynamic_offset`, and
+    /// `static_offset` whole; `load_meshes` zero-fills the rows of timesteps without a mesh.
+    #[test]
+    fn saved_file_has_gaussianavatars_flame_param_layout() {
+        let dir = temp("refined-ga");
+        let p = params();
+        p.save(&dir).expect("save");
+        let mut z = Npz::open(&dir.join(REFINED_NPZ)).expect("open");
+        let (t_len, v) = (4, 6);
+        for (name, width) in [
+            ("expr", 5),
+            ("rotation", 3),
+            ("neck_pose", 3),
+            ("jaw_pose", 3),
+            ("eyes_pose", 6),
+            ("translation", 3),
+        ] {
+            let a = z.floats(name).expect(name);
+            assert_eq!(a.shape, vec![t_len, width], "{name}");
+            let row = |t: usize| a.data[t * width..(t + 1) * width].to_vec();
+            for (&t, q) in p.timesteps.iter().zip(&p.poses) {
+                let want = match name {
+                    "expr" => q.expr.clone(),
+                    "rotation" => q.rotation.to_vec(),
+                    "neck_pose" => q.neck.to_vec(),
+                    "jaw_pose" => q.jaw.to_vec(),
+                    "eyes_pose" => q.eyes.to_vec(),
+                    _ => q.translation.to_vec(),
+                };
+                assert_eq!(row(t), want, "{name} row {t}");
+            }
+            for t in [0, 2] {
+                assert!(row(t).iter().all(|&x| x == 0.0), "{name} row {t}");
+            }
+        }
+        assert_eq!(z.floats("shape").expect("shape").shape, vec![4]);
+        let so = z.floats("static_offset").expect("static_offset");
+        assert_eq!(so.shape, vec![1, v, 3]);
+        let dyn_off = z.floats("dynamic_offset").expect("dynamic_offset");
+        assert_eq!(dyn_off.shape, vec![t_len, v, 3]);
+        assert!(dyn_off.data.iter().all(|&x| x == 0.0));
+        assert_eq!(z.ints("timestep_index").expect("index").data, vec![3, 1]);
+
+        // Our reader gives the rows back (the subject's missing static offset as zeros).
+        let back = RefinedParams::load(&dir).expect("load").expect("present");
+        let mut want = p.clone();
+        for q in &mut want.poses {
+            q.static_offset = Some(vec![[0.0; 3]; v]);
+        }
+        assert_eq!(back, want);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn a_timestep_refined_twice_is_refused() {
+        let dir = temp("refined-twice");
+        let mut p = params();
+        p.timesteps[1] = 3;
+        let e = p.save(&dir).expect_err("duplicate").to_string();
+        assert!(e.contains("timestep 3 is refined twice"), "{e}");
+        assert!(!dir.join(REFINED_NPZ).exists());
+        std::fs::remove_dir_all(&dir).ok();
     }
 }
