@@ -30,6 +30,10 @@ pub struct StudyArgs {
     /// Generate the synthetic subjects' data only (before runs start in parallel).
     #[arg(long)]
     pub prepare: bool,
+    /// Evaluate the finished runs again (all, or run K with --run), keeping their training,
+    /// then collect: after `eval` learned a new score (the errors per face region).
+    #[arg(long, conflicts_with_all = ["plan", "collect", "prepare"])]
+    pub reevaluate: bool,
     /// Parallel jobs the printed `xargs` line uses (with --plan).
     #[arg(long, default_value_t = 2)]
     pub jobs: usize,
@@ -65,6 +69,34 @@ pub fn run(a: StudyArgs) -> anyhow::Result<()> {
     if a.prepare {
         run::prepare(&study, &a.out, &mut |l| say(l))?;
         return Ok(());
+    }
+    if a.reevaluate {
+        let chosen: Vec<(usize, &crate::study::RunSpec)> = match a.run {
+            Some(k) => runs.iter().enumerate().filter(|(i, _)| *i == k).collect(),
+            None => runs.iter().enumerate().collect(),
+        };
+        if chosen.is_empty() {
+            return Err(Error::invalid(
+                "study",
+                "--run",
+                format!("the study has {} runs (0..{})", runs.len(), runs.len()),
+            )
+            .into());
+        }
+        for (k, spec) in chosen {
+            match run::reevaluate(&study, &a.out, spec, a.backend, &mut |l| say(l))? {
+                Some(r) => say(&format!(
+                    "run {k} {}: evaluated again in {:.0} s",
+                    spec.id(),
+                    r.eval_seconds
+                )),
+                None => say(&format!("run {k} {}: not finished, skipped", spec.id())),
+            }
+        }
+        if a.run.is_some() {
+            return Ok(());
+        }
+        return collect(&study, &a);
     }
     if let Some(k) = a.run {
         let Some(spec) = runs.get(k) else {

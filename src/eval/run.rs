@@ -9,7 +9,8 @@
 //! `ceil(n / k)` of its n images, spread evenly over its timesteps and cameras
 //! ([`crate::eval::sample::spread`]). Writes
 //! `metrics.json` (means and standard deviations per split and every image's scores),
-//! `table.md` (the paper's layout, mean ± standard deviation over the images) and
+//! `table.md` (the paper's layout, mean ± standard deviation over the images),
+//! `regions.md` (each split's error per face region, [`crate::eval::regions`]) and
 //! `images/<split>/TTTTT_CC.png` panels (ground truth | render | error, under a header row
 //! naming them, with the render's PSNR).
 
@@ -25,8 +26,9 @@ use crate::data::{Conditioning, HeadDataset, Identity, PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::drive::render::{check_frame, render_frame};
 use crate::error::{Error, Result};
+use crate::eval::regions::{REGIONS, RegionLabeler, RegionScore, RegionTally};
 use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
-use crate::head::HeadAsset;
+use crate::head::{HeadAsset, HeadPose};
 use crate::io;
 use crate::model::avatar::{Avatar, AvatarConfig};
 use crate::train::files;
@@ -83,6 +85,8 @@ pub struct EvalReport {
     pub means: BTreeMap<String, Means>,
     pub images: Vec<ImageScore>,
     pub table: String,
+    /// Each split's error per face region ([`crate::eval::regions`]).
+    pub regions: BTreeMap<String, BTreeMap<String, RegionScore>>,
     pub seconds: f64,
 }
 
@@ -179,6 +183,16 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     }
     let scorer = Scorer::new(&device, opts.lpips)?;
     let model = Arc::new(head.model.clone());
+    let neutral = match &identity {
+        Some(id) => HeadPose {
+            shape: id.shape.clone(),
+            static_offset: id.static_offset.clone(),
+            ..Default::default()
+        },
+        None => HeadPose::default(),
+    };
+    let labeler = RegionLabeler::new(&head, &neutral)?;
+    let mut region_tally = RegionTally::default();
     let mut tally = Tally::default();
     let mut images = Vec::new();
     // Every split's files, before any scoring (issue 15.5).
@@ -226,6 +240,7 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
                 translation: item.translation,
                 vertices: item.vertices,
             };
+            let labels = labeler.label(&item.camera, &frame.vertices);
             check_frame(
                 avatar.as_ref(),
                 &frame,
@@ -235,6 +250,7 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
             let gt = item.image;
             let scores = scorer.score(&gt, &render, h, w)?;
             tally.add(split, &scores);
+            region_tally.add(split, &gt, &render, &labels);
             if panel_at.binary_search(&k).is_ok() {
                 let p = panel(&gt, &render, h, w, scores.psnr)?;
                 let png = dir.join(format!("{t:05}_{c:02}.png"));
@@ -271,10 +287,12 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     }
     let means = tally.means();
     let table = paper_table(&means);
+    let regions = region_tally.scores();
     let report = EvalReport {
         means,
         images,
         table,
+        regions,
         seconds: start.elapsed().as_secs_f64(),
     };
     let json = serde_json::to_string_pretty(&report)
@@ -283,5 +301,30 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     std::fs::write(&path, json).map_err(|e| Error::io(&path, e))?;
     let path = opts.out.join("table.md");
     std::fs::write(&path, &report.table).map_err(|e| Error::io(&path, e))?;
+    let path = opts.out.join("regions.md");
+    std::fs::write(&path, regions_table(&report.regions)).map_err(|e| Error::io(&path, e))?;
     Ok(report)
+}
+
+/// Each split's error per face region as Markdown: PSNR of the region's pooled pixels, its
+/// share of the pixels and of the squared error.
+pub fn regions_table(regions: &BTreeMap<String, BTreeMap<String, RegionScore>>) -> String {
+    let mut s = String::from(
+        "| split | region | PSNR | pixels | share of pixels | share of squared error |\n|---|---|---|---|---|---|\n",
+    );
+    for (split, r) in regions {
+        for name in REGIONS {
+            if let Some(x) = r.get(name) {
+                s += &format!(
+                    "| {split} | {name} | {} | {} | {:.3} | {:.3} |\n",
+                    x.psnr.map_or("-".into(), |p| format!("{p:.2}")),
+                    x.pixels,
+                    x.pixel_share,
+                    x.error_share
+                );
+            }
+        }
+    }
+    s += "\nRegions: `texavatars::eval::regions` (docs/evaluation.md). PSNR is over the region's pixels pooled over the split's scored images.\n";
+    s
 }

@@ -12,7 +12,9 @@
 //! - `curves.png`: every run's training PSNR (a moving average over 100 iterations);
 //! - `panels/SUBJECT_SPLIT_TTTTT_CC.png`: ground truth | full | each variant at the same
 //!   frames, and below, the same columns zoomed into the window where the variants differ
-//!   most from the full method.
+//!   most from the full method;
+//! - `regions.md`: PSNR per face region ([`crate::eval::regions`]) on FREE and held-out,
+//!   per variant (mean over subjects) with its change against the full method.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -23,6 +25,7 @@ use super::config::{RunSpec, Study, Variant};
 use super::run::{finished, run_dir};
 use crate::error::{Error, Result};
 use crate::eval::plot::{self, Bars, Figure, Series};
+use crate::eval::regions::RegionScore;
 use crate::eval::score::{Means, combine_subjects};
 use crate::io;
 
@@ -41,6 +44,8 @@ pub struct RunScores {
     pub variant: Variant,
     pub seed: u64,
     pub means: BTreeMap<String, Means>,
+    /// Errors per face region and split (empty for an evaluation made before they existed).
+    pub regions: BTreeMap<String, BTreeMap<String, RegionScore>>,
 }
 
 /// One row of the tables: scores per split over subjects.
@@ -66,13 +71,110 @@ pub struct Collected {
     pub table2: String,
 }
 
-fn read_means(path: &Path) -> Result<BTreeMap<String, Means>> {
+type Regions = BTreeMap<String, BTreeMap<String, RegionScore>>;
+
+fn read_means(path: &Path) -> Result<(BTreeMap<String, Means>, Regions)> {
     let what = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let json: serde_json::Value = serde_json::from_str(&text)
         .map_err(|e| Error::invalid(&what, format!("line {}", e.line()), e.to_string()))?;
-    serde_json::from_value(json.get("means").cloned().unwrap_or_default())
-        .map_err(|e| Error::invalid(&what, "means", e.to_string()))
+    let means = serde_json::from_value(json.get("means").cloned().unwrap_or_default())
+        .map_err(|e| Error::invalid(&what, "means", e.to_string()))?;
+    let regions = match json.get("regions") {
+        Some(r) => serde_json::from_value(r.clone())
+            .map_err(|e| Error::invalid(&what, "regions", e.to_string()))?,
+        None => Regions::new(),
+    };
+    Ok((means, regions))
+}
+
+/// A region's PSNR for `variant` (`seed`: one seed, else every seed) on `split`: mean over
+/// a subject's runs, then over the subjects that have it.
+fn region_psnr(
+    study: &Study,
+    runs: &[RunScores],
+    variant: Variant,
+    seed: Option<u64>,
+    split: &str,
+    region: &str,
+) -> Option<f64> {
+    let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    let per_subject: Vec<f64> = study
+        .config
+        .subjects
+        .iter()
+        .filter_map(|s| {
+            let v: Vec<f64> = runs
+                .iter()
+                .filter(|r| r.variant == variant && r.subject == s.name)
+                .filter(|r| seed.is_none_or(|x| r.seed == x))
+                .filter_map(|r| r.regions.get(split)?.get(region)?.psnr)
+                .collect();
+            mean(&v)
+        })
+        .collect();
+    mean(&per_subject)
+}
+
+/// `regions.md`: per split (FREE, held-out), every row's PSNR per face region and its change
+/// against the full method; below, the full method's share of pixels and of squared error.
+fn regions_table(study: &Study, runs: &[RunScores], rows: &[Row]) -> String {
+    use crate::eval::regions::REGIONS;
+    if runs.iter().all(|r| r.regions.is_empty()) {
+        return String::from(
+            "No run's evaluation has errors per region (evaluations made before they existed: `texavatars study --reevaluate`).\n",
+        );
+    }
+    let mut s = String::from(
+        "# PSNR per face region\n\nRegions: `texavatars::eval::regions` (docs/evaluation.md). Each cell: PSNR (dB) of the region's pixels pooled over a run's scored images, mean over the subjects (a subject's full method over its seeds), and in brackets the change against the full method.\n",
+    );
+    for (split, label) in [("free", "FREE"), ("test", "held-out")] {
+        s += &format!("\n## {label}\n\n| variant |");
+        for r in REGIONS {
+            s += &format!(" {r} |");
+        }
+        s += "\n|---|";
+        s += &"---|".repeat(REGIONS.len());
+        s += "\n";
+        for row in rows {
+            s += &format!("| {} |", row.label);
+            for region in REGIONS {
+                let v = region_psnr(study, runs, row.variant, row.seed, split, region);
+                let full = region_psnr(study, runs, Variant::Full, None, split, region);
+                s += &match (v, full) {
+                    (Some(v), Some(f)) if !(row.variant == Variant::Full && row.seed.is_none()) => {
+                        format!(" {v:.2} ({:+.2}) |", v - f)
+                    }
+                    (Some(v), _) => format!(" {v:.2} |"),
+                    _ => " – |".into(),
+                };
+            }
+            s += "\n";
+        }
+        let share = |f: &dyn Fn(&RegionScore) -> f64| -> Vec<String> {
+            REGIONS
+                .iter()
+                .map(|region| {
+                    let v: Vec<f64> = runs
+                        .iter()
+                        .filter(|r| r.variant == Variant::Full)
+                        .filter_map(|r| r.regions.get(split)?.get(*region).map(f))
+                        .collect();
+                    if v.is_empty() {
+                        "–".into()
+                    } else {
+                        format!("{:.3}", v.iter().sum::<f64>() / v.len() as f64)
+                    }
+                })
+                .collect()
+        };
+        s += &format!(
+            "| full: share of pixels | {} |\n| full: share of squared error | {} |\n",
+            share(&|x| x.pixel_share).join(" | "),
+            share(&|x| x.error_share).join(" | ")
+        );
+    }
+    s
 }
 
 /// The rows: per variant (and per seed of the full method when it has several), over the
@@ -537,13 +639,14 @@ pub fn collect(study: &Study, out: &Path) -> Result<Collected> {
             missing.push(r.id());
             continue;
         }
-        let means = read_means(&run_dir(out, r).join("eval").join("metrics.json"))?;
+        let (means, regions) = read_means(&run_dir(out, r).join("eval").join("metrics.json"))?;
         runs.push(RunScores {
             id: r.id(),
             subject: r.subject.clone(),
             variant: r.variant,
             seed: r.seed,
             means,
+            regions,
         });
     }
     let rows = rows(study, &runs);
@@ -577,6 +680,7 @@ pub fn collect(study: &Study, out: &Path) -> Result<Collected> {
         t2.push_str(&format!("- {line}\n"));
     }
     write("table2.md", &t2)?;
+    write("regions.md", &regions_table(study, &c.runs, &c.rows))?;
     write(
         "tables.json",
         &(serde_json::to_string_pretty(&c).expect("serialises") + "\n"),

@@ -155,11 +155,39 @@ pub fn run_one(
         "{}: trained in {train_seconds:.0} s; evaluating",
         run.id()
     ));
+    let eval_seconds = evaluate_run(study, out, run, backend, progress)?;
+    let record = RunRecord {
+        id: run.id(),
+        variant: run.variant,
+        seed: run.seed,
+        iterations,
+        train_seconds,
+        eval_seconds,
+    };
+    let path = dir.join(FINISHED);
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&record).expect("serialises") + "\n",
+    )
+    .map_err(|e| Error::io(&path, e))?;
+    Ok(record)
+}
+
+/// Evaluates `run`'s trained avatar into its `eval/` folder (replacing what is there);
+/// returns the seconds it took.
+fn evaluate_run(
+    study: &Study,
+    out: &Path,
+    run: &RunSpec,
+    backend: Option<BackendKind>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<f64> {
     let t1 = Instant::now();
+    let dir = run_dir(out, run);
     let e = &study.config.eval;
     let opts = EvalOptions {
-        data: data.clone(),
-        run: train_dir,
+        data: subject_data(study, out, &run.subject)?,
+        run: dir.join("train"),
         out: dir.join("eval"),
         splits: vec![Split::Val, Split::Test, Split::Free],
         extra: Vec::new(),
@@ -175,21 +203,29 @@ pub fn run_one(
     evaluate(&opts, &mut |l| {
         progress(&format!("{}: eval: {l}", run.id()))
     })?;
-    let record = RunRecord {
-        id: run.id(),
-        variant: run.variant,
-        seed: run.seed,
-        iterations,
-        train_seconds,
-        eval_seconds: t1.elapsed().as_secs_f64(),
+    Ok(t1.elapsed().as_secs_f64())
+}
+
+/// Evaluates a finished run again (its training kept), e.g. after `eval` learned a new
+/// score; its `run.json` records the new evaluation time. `None` when `run` has not finished.
+pub fn reevaluate(
+    study: &Study,
+    out: &Path,
+    run: &RunSpec,
+    backend: Option<BackendKind>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Option<RunRecord>> {
+    let Some(mut record) = finished(out, run) else {
+        return Ok(None);
     };
-    let path = dir.join(FINISHED);
+    record.eval_seconds = evaluate_run(study, out, run, backend, progress)?;
+    let path = run_dir(out, run).join(FINISHED);
     std::fs::write(
         &path,
         serde_json::to_string_pretty(&record).expect("serialises") + "\n",
     )
     .map_err(|e| Error::io(&path, e))?;
-    Ok(record)
+    Ok(Some(record))
 }
 
 /// Seconds per iteration used by [`estimate`] before any run of the study has finished:

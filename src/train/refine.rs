@@ -363,15 +363,34 @@ impl RefinedParams {
         let frames = HeadPose::load_npz_frames(&npz)?;
         let mut z = Npz::open(&npz)?;
         let stored = z.ints("timestep_index")?.data;
-        let offsets = z.floats("dynamic_offset")?.shape;
-        let num_vertices = match offsets.as_slice() {
-            [t, v, 3] if *t == frames.len() => *v,
-            _ => {
+        // Runs before 2026-12-03 wrote one row per refined timestep, in the index's order,
+        // without `dynamic_offset`; read them as they were written.
+        let by_row = !z.has("dynamic_offset");
+        let num_vertices = if by_row {
+            if frames.len() != index.timestep_index.len() {
                 return Err(Error::invalid(
-                    npz.display().to_string(),
-                    "dynamic_offset",
-                    format!("shape {offsets:?}, expected ({}, V, 3)", frames.len()),
+                    &what,
+                    "timestep_index",
+                    format!(
+                        "{} timesteps for the {} rows of {} (no dynamic_offset: one row per timestep)",
+                        index.timestep_index.len(),
+                        frames.len(),
+                        npz.display()
+                    ),
                 ));
+            }
+            frames[0].static_offset.as_ref().map_or(0, Vec::len)
+        } else {
+            let offsets = z.floats("dynamic_offset")?.shape;
+            match offsets.as_slice() {
+                [t, v, 3] if *t == frames.len() => *v,
+                _ => {
+                    return Err(Error::invalid(
+                        npz.display().to_string(),
+                        "dynamic_offset",
+                        format!("shape {offsets:?}, expected ({}, V, 3)", frames.len()),
+                    ));
+                }
             }
         };
         if index.flame_param_path.len() != index.timestep_index.len() {
@@ -399,18 +418,22 @@ impl RefinedParams {
         let poses = index
             .timestep_index
             .iter()
-            .map(|&t| {
-                frames.get(t).cloned().ok_or_else(|| {
-                    Error::invalid(
-                        &what,
-                        "timestep_index",
-                        format!(
-                            "timestep {t}, but {} has {} rows",
-                            npz.display(),
-                            frames.len()
-                        ),
-                    )
-                })
+            .enumerate()
+            .map(|(r, &t)| {
+                frames
+                    .get(if by_row { r } else { t })
+                    .cloned()
+                    .ok_or_else(|| {
+                        Error::invalid(
+                            &what,
+                            "timestep_index",
+                            format!(
+                                "timestep {t}, but {} has {} rows",
+                                npz.display(),
+                                frames.len()
+                            ),
+                        )
+                    })
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Some(RefinedParams {
@@ -540,6 +563,40 @@ mod tests {
         let e = p.save(&dir).expect_err("duplicate").to_string();
         assert!(e.contains("timestep 3 is refined twice"), "{e}");
         assert!(!dir.join(REFINED_NPZ).exists());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// Runs before the GaussianAvatars layout wrote one row per refined timestep, in the
+    /// index's order, without `dynamic_offset`; they still load.
+    #[test]
+    fn files_with_one_row_per_timestep_still_load() {
+        let dir = temp("refined-rows");
+        let p = params();
+        let rows = |f: &dyn Fn(&HeadPose) -> Vec<f32>| -> Vec<f32> {
+            p.poses.iter().flat_map(f).collect()
+        };
+        let mut out = NpzOut::default();
+        out.floats("translation", &[2, 3], rows(&|q| q.translation.to_vec()))
+            .floats("rotation", &[2, 3], rows(&|q| q.rotation.to_vec()))
+            .floats("neck_pose", &[2, 3], rows(&|q| q.neck.to_vec()))
+            .floats("jaw_pose", &[2, 3], rows(&|q| q.jaw.to_vec()))
+            .floats("eyes_pose", &[2, 6], rows(&|q| q.eyes.to_vec()))
+            .floats("expr", &[2, 5], rows(&|q| q.expr.clone()))
+            .floats("shape", &[4], p.poses[0].shape.clone())
+            .ints("timestep_index", &[2], vec![3, 1]);
+        out.write(&dir.join(REFINED_NPZ)).expect("write");
+        let index = RefinedIndex {
+            flame_param_path: p.keys.clone(),
+            timestep_index: p.timesteps.clone(),
+        };
+        std::fs::write(
+            dir.join(REFINED_INDEX),
+            serde_json::to_string(&index).expect("json"),
+        )
+        .expect("write");
+        let back = RefinedParams::load(&dir).expect("load").expect("present");
+        assert_eq!(back.poses, p.poses);
+        assert_eq!(back.timesteps, p.timesteps);
         std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -130,6 +130,48 @@ fn a_tiny_study_runs_resumes_and_collects_the_same_through_its_plan() {
     assert!(stderr.contains("3 runs, 3 finished"), "{stderr}");
     assert_eq!(mtime(&marker), before);
 
+    // Errors per face region: every run's metrics.json has them, regions.md lists them.
+    let regions = std::fs::read_to_string(report.join("regions.md")).unwrap();
+    assert!(
+        regions.contains("## FREE") && regions.contains("## held-out"),
+        "{regions}"
+    );
+    let eta_row = regions
+        .lines()
+        .find(|l| l.starts_with("| w/o eta |"))
+        .expect("w/o eta row");
+    // all, background, skin, mouth, eyes, stretched, creases: "all" always has pixels.
+    assert!(
+        eta_row.split('|').nth(2).unwrap().contains('('),
+        "{eta_row}"
+    );
+    assert!(
+        regions.contains("| full: share of squared error |"),
+        "{regions}"
+    );
+
+    // --reevaluate --run K evaluates a finished run again without training it; the
+    // evaluation is deterministic, so the tables stay the same.
+    let eta_run = out.join("runs/tiny/no-eta-seed1/run.json");
+    let before = mtime(&eta_run);
+    let train_before = mtime(&out.join("runs/tiny/no-eta-seed1/train"));
+    let o = study(&config, &out, &["--reevaluate", "--run", "2"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("run 2 tiny/no-eta-seed1: evaluated again in"),
+        "{stderr}"
+    );
+    assert!(mtime(&eta_run) > before);
+    assert_eq!(
+        mtime(&out.join("runs/tiny/no-eta-seed1/train")),
+        train_before
+    );
+    study(&config, &out, &["--collect"]);
+    assert_eq!(
+        std::fs::read_to_string(report.join("table1.md")).unwrap(),
+        table1
+    );
+
     // The plan: one command line per run and a Slurm array over them.
     let planned = root.join("planned");
     let o = study(&config, &planned, &["--plan"]);
