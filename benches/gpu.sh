@@ -13,6 +13,9 @@
 # minutes on a 16-core machine with a GPU; the release build is most of it from a clean
 # clone. Please report the table (issue tracker or README's figures).
 #
+# GPU_SH_CUDA=1 builds with `--features cuda` and adds the same two measurements on burn's
+# CUDA backend (NVIDIA GPUs).
+#
 # GPU_SH_QUICK=1 shrinks every stage (cpu networks, 138 x 200, few renders): a smoke test of
 # the script itself, e.g. on lavapipe; its figures say nothing about a GPU.
 set -euo pipefail
@@ -20,6 +23,13 @@ cd "$(dirname "$0")/.."
 out=${GPU_SH_OUT:-target/gpu-sh}
 mkdir -p "$out"
 quick=${GPU_SH_QUICK:-0}
+cuda=${GPU_SH_CUDA:-0}
+features=()
+backends=(wgpu)
+if [ "$cuda" = 1 ]; then
+    features=(--features cuda)
+    backends=(wgpu cuda)
+fi
 if [ "$quick" = 1 ]; then
     net=configs/cpu.json; size=138x200; renders=5; rounds=1; bench_config=cpu
 else
@@ -30,7 +40,7 @@ t0=$(date +%s)
 stage() { echo "gpu.sh: $* ($(( $(date +%s) - t0 )) s)" >&2; }
 
 stage "1/4 release build"
-cargo build --release 2>&1 | tail -n 3 >&2
+cargo build --release "${features[@]}" 2>&1 | tail -n 3 >&2
 exe="$target/release/texavatars"
 
 stage "2/4 GPU parity tests (wgpu)"
@@ -41,17 +51,20 @@ else
     tests="FAILED (see $out/tests.log)"
 fi
 
-stage "3/4 bench fps ($net, $size, wgpu)"
-"$exe" bench fps --backend wgpu --net "$net" --size "$size" --renders "$renders" \
-    --rounds "$rounds" >"$out/fps.log" 2>&1 || true
-fps=$(grep -m1 "mean of" "$out/fps.log" | sed 's/^mean of [0-9]* rounds: //' || true)
-fps=${fps:-failed (see $out/fps.log)}
+declare -A fps step
+for b in "${backends[@]}"; do
+    stage "3/4 bench fps ($net, $size, $b)"
+    "$exe" bench fps --backend "$b" --net "$net" --size "$size" --renders "$renders" \
+        --rounds "$rounds" >"$out/fps_$b.log" 2>&1 || true
+    f=$(grep -m1 "mean of" "$out/fps_$b.log" | sed 's/^mean of [0-9]* rounds: //' || true)
+    fps[$b]=${f:-failed (see $out/fps_$b.log)}
 
-stage "4/4 training step ($bench_config, wgpu)"
-TEXAVATARS_BENCH_CONFIG=$bench_config TEXAVATARS_BENCH_BACKEND=wgpu \
-    cargo bench --bench train >"$out/train.log" 2>&1 || true
-step=$(grep -A2 "train_iteration_" "$out/train.log" | grep -m1 -oE "time: +\[[^]]*\]" || true)
-step=${step:-failed (see $out/train.log)}
+    stage "4/4 training step ($bench_config, $b)"
+    TEXAVATARS_BENCH_CONFIG=$bench_config TEXAVATARS_BENCH_BACKEND=$b \
+        cargo bench "${features[@]}" --bench train >"$out/train_$b.log" 2>&1 || true
+    t=$(grep -A2 "train_iteration_" "$out/train_$b.log" | grep -m1 -oE "time: +\[[^]]*\]" || true)
+    step[$b]=${t:-failed (see $out/train_$b.log)}
+done
 
 total=$(( $(date +%s) - t0 ))
 {
@@ -62,8 +75,10 @@ total=$(( $(date +%s) - t0 ))
     echo "| GPU | $(nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null | head -n1 || echo unknown) |"
     echo "| Vulkan device | ${adapter:-unknown (vulkaninfo not installed)} |"
     echo "| parity tests (gpu_kernels, splat_gpu) | $tests |"
-    echo "| bench fps, $net, $size, wgpu | $fps |"
-    echo "| training step, train_$bench_config, wgpu | $step |"
+    for b in "${backends[@]}"; do
+        echo "| bench fps, $net, $size, $b | ${fps[$b]} |"
+        echo "| training step, train_$bench_config, $b | ${step[$b]} |"
+    done
     echo "| wall time of this script | ${total} s |"
     if [ "$quick" = 1 ]; then
         echo "| note | GPU_SH_QUICK=1: smoke test, not a measurement |"

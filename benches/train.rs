@@ -3,7 +3,7 @@
 //! docs/training.md for its cost).
 //!
 //! `cargo bench --bench train`; `TEXAVATARS_BENCH_CONFIG=cpu|paper` picks
-//! `configs/train_<name>.json` (default `cpu`); `TEXAVATARS_BENCH_BACKEND=flex|cpu|wgpu`
+//! `configs/train_<name>.json` (default `cpu`); `TEXAVATARS_BENCH_BACKEND=flex|cpu|wgpu|cuda`
 //! where it runs (default `flex`; `benches/gpu.sh` uses `wgpu`). The images: the synthetic benchmark at 138 x 200
 //! for `cpu` and at NeRSemble's 550 x 802 for `paper` (two cameras, generated once into a
 //! temporary folder before timing).

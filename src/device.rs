@@ -24,6 +24,12 @@ pub enum BackendKind {
     /// burn-wgpu (Vulkan, Metal, DX12; lavapipe without a GPU); the splat operator runs the
     /// CubeCL kernels.
     Wgpu,
+    /// burn's CUDA backend (NVIDIA GPU 0, built with `--features cuda`): the same CubeCL
+    /// kernels, compiled by NVRTC at run time. burn-cubecl is one backend type for every
+    /// runtime (the device says which), so every custom op registered for `Cube` runs here
+    /// unchanged.
+    #[cfg(feature = "cuda")]
+    Cuda,
 }
 
 impl BackendKind {
@@ -34,6 +40,8 @@ impl BackendKind {
             BackendKind::Cpu => Device::ndarray(),
             BackendKind::Flex => Device::flex(),
             BackendKind::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
+            #[cfg(feature = "cuda")]
+            BackendKind::Cuda => Device::cuda(0),
         }
     }
 

@@ -81,6 +81,8 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
             BackendKind::Cpu => "ndarray",
             BackendKind::Flex => "flex",
             BackendKind::Wgpu => "wgpu",
+            #[cfg(feature = "cuda")]
+            BackendKind::Cuda => "cuda",
         };
         // SAFETY: called from `main` right after parsing the command line, before anything
         // has started a thread that could read the environment concurrently.
