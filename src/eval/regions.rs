@@ -10,7 +10,7 @@
 //! | `all` | the whole image (what PSNR scores) |
 //! | `background` | no face covers them (floaters, missing hair, silhouette errors) |
 //! | `skin` | faces outside the mouth and eyes sets |
-//! | `mouth` | faces touching the `lips`, `teeth_*` or `tongue` vertex sets ([`HeadMeta`]) |
+//! | `mouth` | faces touching the `lips`, `teeth_*` or `tongue` vertex sets ([`HeadMeta`](crate::head::HeadMeta)) |
 //! | `eyes` | faces touching the `eye_l` or `eye_r` sets |
 //! | `stretched` | the tenth of the faces most stretched against the subject's neutral head |
 //! | `creases` | the tenth of the faces whose frame jumps most to a neighbour's |
