@@ -136,11 +136,14 @@ fn regions_table(study: &Study, runs: &[RunScores], rows: &[Row]) -> String {
         s += "\n|---|";
         s += &"---|".repeat(REGIONS.len());
         s += "\n";
+        let full: Vec<Option<f64>> = REGIONS
+            .iter()
+            .map(|r| region_psnr(study, runs, Variant::Full, None, split, r))
+            .collect();
         for row in rows {
             s += &format!("| {} |", row.label);
-            for region in REGIONS {
+            for (region, &full) in REGIONS.iter().zip(&full) {
                 let v = region_psnr(study, runs, row.variant, row.seed, split, region);
-                let full = region_psnr(study, runs, Variant::Full, None, split, region);
                 s += &match (v, full) {
                     (Some(v), Some(f)) if !(row.variant == Variant::Full && row.seed.is_none()) => {
                         format!(" {v:.2} ({:+.2}) |", v - f)
