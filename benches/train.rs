@@ -81,6 +81,37 @@ fn bench(c: &mut Criterion) {
         },
     });
     let mut optim = optimizer(&config);
+    let mut step = |model: &mut Option<AvatarTraining>| {
+        let m = model.take().expect("model");
+        let out = m.step(batch.clone());
+        *model = Some(optim.step(config.lr_decoders, m, out.grads));
+    };
+    if matches!(backend_name.as_str(), "wgpu" | "cuda") {
+        // Kernel launches and the splat's blocking reads per step, after two warm-up steps
+        // (autotuning and the fusion optimiser's first passes launch extra kernels).
+        const STEPS: u64 = 3;
+        for _ in 0..2 {
+            step(&mut model);
+        }
+        device.sync().expect("device sync");
+        let reads = texavatars::splat::gpu::host_reads();
+        let count = texavatars::device::LaunchCount::start();
+        for _ in 0..STEPS {
+            step(&mut model);
+        }
+        // Everything queued (fusion defers launches) is issued before the count is read.
+        device.sync().expect("device sync");
+        let by_kernel = count.by_kernel();
+        println!(
+            "launches per training step ({backend_name}, {name}, mean of {STEPS}): {:.1}; \
+             blocking reads by the splat per step: {:.1}",
+            count.total() as f64 / STEPS as f64,
+            (texavatars::splat::gpu::host_reads() - reads) as f64 / STEPS as f64
+        );
+        for (kernel, n) in by_kernel.iter().take(25) {
+            println!("  {:>8.1}  {kernel}", *n as f64 / STEPS as f64);
+        }
+    }
     let mut group = c.benchmark_group(format!("train_iteration_{name}"));
     group.sample_size(10);
     group.warm_up_time(Duration::from_secs(3));
@@ -88,13 +119,7 @@ fn bench(c: &mut Criterion) {
     let gaussians = model.as_ref().map_or(0, |m| m.avatar.num_gaussians());
     group.bench_function(
         format!("{backend_name}_{w}x{h}_{gaussians}_gaussians"),
-        |b| {
-            b.iter(|| {
-                let m = model.take().expect("model");
-                let out = m.step(batch.clone());
-                model = Some(optim.step(config.lr_decoders, m, out.grads));
-            })
-        },
+        |b| b.iter(|| step(&mut model)),
     );
     group.finish();
     let _ = std::fs::remove_dir_all(&data);

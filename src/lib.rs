@@ -19,8 +19,8 @@
 //!    as one command).
 //!
 //! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`device`] (backend
-//! choice), [`io`] (npy / npz / PNG / pickle files) and [`error`] (errors that name the file
-//! and field). The GPU kernels are the `texavatars-kernels` crate ([`kernels`]).
+//! choice), `fusion` (the custom ops on burn's kernel-fusion backend), [`io`] (npy / npz /
+//! PNG / pickle files) and [`error`] (errors that name the file and field). The GPU kernels are the `texavatars-kernels` crate ([`kernels`]).
 
 pub mod camera;
 pub mod cli;
@@ -31,6 +31,8 @@ pub mod drivable;
 pub mod drive;
 pub mod error;
 pub mod eval;
+#[cfg(feature = "fusion")]
+pub mod fusion;
 pub mod gaussianavatars;
 pub mod gemm;
 pub mod head;

@@ -26,7 +26,7 @@ use burn_cubecl::cubecl::device::WgpuDeviceKind;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::tensor::CubeTensor;
 use texavatars::camera::{Camera, CameraFile};
-use texavatars::splat::gpu::{self, Accumulation, GpuForward, GpuOptions};
+use texavatars::splat::gpu::{self, Accumulation, GpuForward, GpuOptions, PlaneReduction};
 
 // ---------------------------------------------------------------------------------------
 // Device helpers
@@ -385,9 +385,17 @@ fn gpu_backward(
 fn accumulation_paths(dev: &CubeDevice) -> Vec<(Accumulation, GpuOptions)> {
     let client = dev.client();
     let mut paths: Vec<(Accumulation, GpuOptions)> = vec![];
-    for allow_float_atomics in [true, false] {
+    // `Force` runs the plane-reduced path on lavapipe, whose adapter has subgroups although
+    // cubecl reports no plane operations for CPU adapters.
+    let combos = [
+        (true, PlaneReduction::Off),
+        (true, PlaneReduction::Force),
+        (false, PlaneReduction::Off),
+    ];
+    for (allow_float_atomics, plane_reduction) in combos {
         let options = GpuOptions {
             allow_float_atomics,
+            plane_reduction,
         };
         let accumulation = options.accumulation(&client);
         if paths.iter().all(|(a, _)| *a != accumulation) {
@@ -1134,4 +1142,30 @@ fn image_above_the_adapter_limit_is_refused_before_allocation() {
         ..scene
     };
     assert_eq!(dims(&gpu_forward(&dev, &small).out), [9, 20, 4]);
+}
+
+/// `LaunchCount` sees the splat's kernels (other tests of this binary may launch at the same
+/// time, so the counts are lower bounds), and the forward's blocking reads are counted: one
+/// per forward (the key span and intersection count).
+#[test]
+fn launches_and_host_reads_are_counted() {
+    let dev = device();
+    let cam = camera(64, 48, 60.0);
+    let scene = random_scene(9, 300, cam, (0.001, 0.01), [0.0; 3]);
+    let count = texavatars::device::LaunchCount::start();
+    let reads = gpu::host_reads();
+    let fwd = gpu_forward(&dev, &scene);
+    let _ = read_f32(&fwd.out);
+    let by_kernel = count.by_kernel();
+    let launches = |name: &str| {
+        by_kernel
+            .iter()
+            .find(|(k, _)| k.as_str() == name)
+            .map_or(0, |(_, n)| *n)
+    };
+    assert!(launches("Project") >= 1, "{by_kernel:?}");
+    assert!(launches("Rasterize") >= 1, "{by_kernel:?}");
+    assert!(launches("RadixHistogram") >= 2, "{by_kernel:?}");
+    assert!(count.total() >= 8, "{by_kernel:?}");
+    assert!(gpu::host_reads() > reads);
 }

@@ -694,3 +694,56 @@ fn conv_transpose_wgpu_matches_host() {
         assert!(d < 1e-4, "{name}: max difference {d}");
     }
 }
+
+/// With the `fusion` feature (on by default) burn's cubecl backend is its kernel-fusion
+/// backend, so every wgpu test in this suite runs on `Fusion<CubeBackend>`.
+#[cfg(feature = "fusion")]
+#[test]
+fn the_cube_backend_is_fused() {
+    use std::any::TypeId;
+    assert_eq!(
+        TypeId::of::<burn::backend::Cube>(),
+        TypeId::of::<burn::backend::fusion::Fusion<burn_cubecl::CubeBackend>>()
+    );
+}
+
+/// The decoders on wgpu (fused element-wise chains: bias, LeakyReLU, weight norm) against
+/// flex, the same weights on both: local maps and the gradients of the first geometry layer.
+#[test]
+fn decoders_on_wgpu_match_flex() {
+    let cfg = config("tiny");
+    let cpu = seeded(Device::flex().autodiff(), 11);
+    let gpu = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff();
+    let net = cfg.init(&cpu).unwrap();
+    let run = |net: TexAvatarNet, device: &Device| {
+        let maps = net
+            .forward_cameras(condition(1, cfg.condition.dim(), 0.5, device), &[camera()])
+            .unwrap();
+        let packed = maps.packed();
+        // A weighted sum, so that every map value has its own gradient.
+        let n = packed.shape().num_elements();
+        let w: Vec<f32> = (0..n).map(|i| ((i * 29 % 11) as f32 - 5.0) / 5.0).collect();
+        let w = Tensor::<4>::from_data(TensorData::new(w, packed.dims()), device);
+        let grads = (packed.clone() * w).sum().backward();
+        let g = net.geometry.layers[0]
+            .v
+            .val()
+            .grad(&grads)
+            .expect("gradient");
+        (host(packed), host(g))
+    };
+    let (maps_cpu, g_cpu) = run(net.clone(), &cpu);
+    let (maps_gpu, g_gpu) = run(net.fork(&gpu), &gpu);
+    for (name, a, b) in [("maps", maps_cpu, maps_gpu), ("d v", g_cpu, g_gpu)] {
+        assert_eq!(a.len(), b.len(), "{name}");
+        let scale = a.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+        let d = a
+            .iter()
+            .zip(&b)
+            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        assert!(
+            d <= 1e-4 * scale,
+            "{name}: max difference {d} (scale {scale})"
+        );
+    }
+}

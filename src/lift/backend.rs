@@ -17,8 +17,9 @@ use burn::backend::autodiff::{
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
-    AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
+    AutodiffBackend, Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
 };
+use burn_cubecl::CubeBackend;
 
 use crate::kernels::lift::constants::{LOCAL_CHANNELS, OUT_CHANNELS};
 use crate::lift::{LiftParams, cpu, gpu};
@@ -117,7 +118,7 @@ macro_rules! host_lift_backend {
 
 host_lift_backend!(NdArray, Flex);
 
-impl LiftBackend for Cube {
+impl LiftBackend for CubeBackend {
     fn lift(
         local: FloatTensor<Self>,
         vertices: FloatTensor<Self>,
@@ -134,6 +135,49 @@ impl LiftBackend for Cube {
     ) -> LiftGradients<Self> {
         let (local, vertices) = gpu::backward(local, vertices, grad_out, &params);
         LiftGradients { local, vertices }
+    }
+}
+
+/// On burn's fusion backend the lift runs eagerly on the inner backend (see
+/// [`crate::fusion`]): its inputs are the decoders' outputs, which fusion hands over once
+/// computed, and its output feeds the splat, which must run eagerly anyway.
+#[cfg(feature = "fusion")]
+impl<B: burn::backend::fusion::FusionBackend + LiftBackend> LiftBackend
+    for burn::backend::fusion::Fusion<B>
+{
+    fn lift(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> FloatTensor<Self> {
+        use crate::fusion::{device_of, register_float, resolve_float};
+        let device = device_of::<B>(&local);
+        let out = B::lift(
+            resolve_float::<B>(local),
+            resolve_float::<B>(vertices),
+            params,
+        );
+        register_float::<B>(out, &device)
+    }
+
+    fn lift_backward(
+        local: FloatTensor<Self>,
+        vertices: FloatTensor<Self>,
+        grad_out: FloatTensor<Self>,
+        params: LiftParams,
+    ) -> LiftGradients<Self> {
+        use crate::fusion::{device_of, register_float, resolve_float};
+        let device = device_of::<B>(&local);
+        let g = B::lift_backward(
+            resolve_float::<B>(local),
+            resolve_float::<B>(vertices),
+            resolve_float::<B>(grad_out),
+            params,
+        );
+        LiftGradients {
+            local: register_float::<B>(g.local, &device),
+            vertices: register_float::<B>(g.vertices, &device),
+        }
     }
 }
 

@@ -16,9 +16,11 @@ use burn::backend::autodiff::{
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
-    AutodiffBackend, Backend, Cube, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
+    AutodiffBackend, Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
 };
 use burn::tensor::{DType, Shape, Slice, TensorData};
+
+use burn_cubecl::CubeBackend;
 
 use crate::camera::Camera;
 use crate::splat::{cpu, gpu};
@@ -391,7 +393,7 @@ cpu_splat_backend!(NdArray, Flex);
 // ---------------------------------------------------------------------------------------------
 // cubecl (wgpu): the CubeCL kernels of `texavatars-kernels`.
 
-impl SplatBackend for Cube {
+impl SplatBackend for CubeBackend {
     fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
         let f = gpu::forward(
             inputs.means,
@@ -441,6 +443,72 @@ impl SplatBackend for Cube {
             opacities,
             screen: first_columns::<Self>(grad2d, n, 2),
         }
+    }
+}
+
+/// On burn's fusion backend the splat runs eagerly on the inner backend (see
+/// [`crate::fusion`]): the forward sizes its intersection buffers from a count it reads back,
+/// so its outputs' shapes cannot be declared before it runs, as a lazy fusion op requires.
+#[cfg(feature = "fusion")]
+impl<B: burn::backend::fusion::FusionBackend + SplatBackend> SplatBackend
+    for burn::backend::fusion::Fusion<B>
+{
+    fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
+        use crate::fusion::{device_of, register_float, register_int};
+        let device = device_of::<B>(&inputs.means);
+        let s = B::splat_forward(resolve_inputs::<B>(inputs), params);
+        SplatState {
+            out: register_float::<B>(s.out, &device),
+            projected: register_float::<B>(s.projected, &device),
+            gaussian_from_isect: register_int::<B>(s.gaussian_from_isect, &device),
+            tile_ranges: register_int::<B>(s.tile_ranges, &device),
+            last: register_int::<B>(s.last, &device),
+        }
+    }
+
+    fn splat_backward(
+        inputs: SplatInputs<Self>,
+        state: SplatState<Self>,
+        grad_out: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> SplatGrads<Self> {
+        use crate::fusion::{device_of, register_float, resolve_float, resolve_int};
+        let device = device_of::<B>(&inputs.means);
+        let state = SplatState {
+            out: resolve_float::<B>(state.out),
+            projected: resolve_float::<B>(state.projected),
+            gaussian_from_isect: resolve_int::<B>(state.gaussian_from_isect),
+            tile_ranges: resolve_int::<B>(state.tile_ranges),
+            last: resolve_int::<B>(state.last),
+        };
+        let g = B::splat_backward(
+            resolve_inputs::<B>(inputs),
+            state,
+            resolve_float::<B>(grad_out),
+            params,
+        );
+        SplatGrads {
+            means: register_float::<B>(g.means, &device),
+            cov6: register_float::<B>(g.cov6, &device),
+            colors: register_float::<B>(g.colors, &device),
+            opacities: register_float::<B>(g.opacities, &device),
+            screen: register_float::<B>(g.screen, &device),
+        }
+    }
+}
+
+/// The inner backend's tensors behind fusion splat inputs.
+#[cfg(feature = "fusion")]
+fn resolve_inputs<B: burn::backend::fusion::FusionBackend>(
+    inputs: SplatInputs<burn::backend::fusion::Fusion<B>>,
+) -> SplatInputs<B> {
+    use crate::fusion::resolve_float;
+    SplatInputs {
+        means: resolve_float::<B>(inputs.means),
+        cov6: resolve_float::<B>(inputs.cov6),
+        colors: resolve_float::<B>(inputs.colors),
+        opacities: resolve_float::<B>(inputs.opacities),
+        screen: resolve_float::<B>(inputs.screen),
     }
 }
 

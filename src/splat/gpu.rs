@@ -3,10 +3,12 @@
 //!
 //! The host side of the kernels in [`texavatars_kernels::splat`]: it allocates the buffers,
 //! launches the kernels in order and wraps the results as [`CubeTensor`]s. Everything stays
-//! on the device except one 4-byte read of the intersection count (to size the intersection
-//! buffers).
+//! on the device except one 12-byte read per forward: the intersection count (to size the
+//! intersection buffers) and the span of the visible depth keys (to sort only the key bits
+//! that differ).
 //!
-//! Forward: project → depth radix sort → tile counts in depth order → exclusive scan →
+//! Forward: project (with the key span and intersection count, read back) → depth radix
+//! sort over the differing key bits → tile counts in depth order → exclusive scan →
 //! emit `(tile, Gaussian)` intersections → stable radix sort by tile → tile ranges →
 //! per-tile rasterization. Backward: per-tile reverse rasterization accumulating
 //! screen-space gradients (float atomics, or per-intersection slots and a deterministic
@@ -37,7 +39,7 @@ use texavatars_kernels::splat::emit_intersections::emit_intersections;
 use texavatars_kernels::splat::fill::fill_u32;
 use texavatars_kernels::splat::gather::gather_u32;
 use texavatars_kernels::splat::iota::iota_u32;
-use texavatars_kernels::splat::project::project;
+use texavatars_kernels::splat::project::{KEY_MAX, KEY_MIN, KEY_STATS_LEN, TOTAL_TILES, project};
 use texavatars_kernels::splat::radix_sort::histogram::radix_histogram;
 use texavatars_kernels::splat::radix_sort::scatter::radix_scatter;
 use texavatars_kernels::splat::radix_sort::{
@@ -50,6 +52,16 @@ use texavatars_kernels::splat::scan::{SCAN_BLOCK, SCAN_THREADS};
 use texavatars_kernels::splat::tile_ranges::segment_ranges;
 
 use crate::camera::Camera;
+
+/// Blocking reads from the device issued by this module since the process started.
+static HOST_READS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// How many blocking device-to-host reads the GPU splat (and its diagnostics) has issued in
+/// this process: each is a round trip that stalls the host until the device has caught up.
+/// For benchmarks; burn's own reads (a loss value for a log line) are not counted here.
+pub fn host_reads() -> u64 {
+    HOST_READS.load(std::sync::atomic::Ordering::Relaxed)
+}
 
 /// Threads per workgroup of the one-thread-per-element kernels.
 const ELEMENTWISE_THREADS: u32 = 256;
@@ -81,14 +93,31 @@ pub struct GpuOptions {
     /// device supports them. `false` forces the deterministic per-intersection-slot path
     /// (used on devices without float atomics).
     pub allow_float_atomics: bool,
+    /// Whether the float-atomic path first sums within planes (subgroups).
+    pub plane_reduction: PlaneReduction,
 }
 
 impl Default for GpuOptions {
     fn default() -> Self {
         Self {
             allow_float_atomics: true,
+            plane_reduction: PlaneReduction::Auto,
         }
     }
+}
+
+/// Whether the backward's float-atomic path sums each Gaussian's gradients within a plane
+/// (subgroup) before its atomics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PlaneReduction {
+    /// Where cubecl reports plane operations for the device ([`plane_ops_supported`]).
+    Auto,
+    /// Never: one set of atomics per contributing pixel.
+    Off,
+    /// Always. The adapter must have subgroups even where cubecl does not report them:
+    /// cubecl-wgpu leaves plane operations off on CPU adapters, and lavapipe has subgroups,
+    /// which is how the tests run this path without a GPU.
+    Force,
 }
 
 /// How [`backward_with_options`] accumulates per-Gaussian gradients on a device.
@@ -96,6 +125,9 @@ impl Default for GpuOptions {
 pub enum Accumulation {
     /// One float atomic add per contributing pixel and gradient entry.
     Atomics,
+    /// A plane (subgroup) sum per Gaussian first, then one float atomic add per plane and
+    /// gradient entry.
+    PlaneAtomics,
     /// Per-intersection slots and a deterministic per-Gaussian sum (no float atomics).
     Slots,
 }
@@ -103,12 +135,24 @@ pub enum Accumulation {
 impl GpuOptions {
     /// The accumulation these options select on `client`'s device.
     pub fn accumulation(&self, client: &Client) -> Accumulation {
-        if self.allow_float_atomics && float_atomics_supported(client) {
-            Accumulation::Atomics
-        } else {
-            Accumulation::Slots
+        if !(self.allow_float_atomics && float_atomics_supported(client)) {
+            return Accumulation::Slots;
+        }
+        match self.plane_reduction {
+            PlaneReduction::Auto if plane_ops_supported(client) => Accumulation::PlaneAtomics,
+            PlaneReduction::Force => Accumulation::PlaneAtomics,
+            _ => Accumulation::Atomics,
         }
     }
+}
+
+/// Whether cubecl reports plane (subgroup) operations for `client`'s device.
+pub fn plane_ops_supported(client: &Client) -> bool {
+    client
+        .properties()
+        .features
+        .plane
+        .contains(burn_cubecl::cubecl::ir::features::Plane::Ops)
 }
 
 /// Whether `client`'s device can `fetch_add` on `Atomic<f32>` in global memory.
@@ -237,6 +281,9 @@ pub fn forward(
         let tile_rects = ctx.empty(n * 4);
         let tile_counts = ctx.empty(n);
         let depth_keys = ctx.empty(n);
+        let key_stats = ctx
+            .client
+            .create_from_slice(u32::as_bytes(&[u32::MAX, 0, 0]));
         let (count, dim) = ctx.elementwise(n);
         // SAFETY: every buffer holds the lengths passed; the kernel bounds-checks `n`.
         unsafe {
@@ -253,6 +300,7 @@ pub fn forward(
                 arg(&tile_rects, n * 4),
                 arg(&tile_counts, n),
                 arg(&depth_keys, n),
+                arg(&key_stats, KEY_STATS_LEN),
                 n as u32,
                 frame.width,
                 frame.height,
@@ -272,13 +320,17 @@ pub fn forward(
                 "{total} tile intersections exceed the supported 2^31 - 1"
             );
         }
-        let order = ctx.iota(n);
-        let (_, gaussian_from_depth_rank) = ctx.radix_sort(&depth_keys, &order, n, u32::BITS);
-        let counts_by_depth = ctx.gather(&tile_counts, &gaussian_from_depth_rank, n);
-        let (isect_offsets, total) = ctx.exclusive_scan(&counts_by_depth, n);
-        isects = ctx.read_u32(&total) as usize;
+        // The forward's one round trip: the intersection count and the span of the
+        // visible Gaussians' depth keys.
+        let stats = ctx.read_words(&key_stats, KEY_STATS_LEN);
+        isects = stats[TOTAL_TILES] as usize;
         scene.intersections = Some(isects);
         assert_fits(&ctx, &scene);
+        let depth_bits = depth_key_bits(stats[KEY_MIN], stats[KEY_MAX], isects);
+        let order = ctx.iota(n);
+        let (_, gaussian_from_depth_rank) = ctx.radix_sort(&depth_keys, &order, n, depth_bits);
+        let counts_by_depth = ctx.gather(&tile_counts, &gaussian_from_depth_rank, n);
+        let (isect_offsets, _) = ctx.exclusive_scan(&counts_by_depth, n);
 
         if isects > 0 {
             let keys = ctx.empty(isects);
@@ -481,6 +533,7 @@ pub fn backward_with_options(
                     frame.height,
                     frame.tiles_x,
                     float_atomics,
+                    accumulation == Accumulation::PlaneAtomics,
                 )
             }
         };
@@ -605,6 +658,18 @@ fn check_shapes(
         "at most 2^31 - 1 Gaussians are supported, got {n}"
     );
     n
+}
+
+/// The low key bits the depth sort must sort: those in which the smallest and the largest
+/// visible key differ (all visible keys share the bits above them). Culled Gaussians, whose
+/// keys may differ anywhere, touch no tile, so their place in the order does not matter;
+/// without intersections nothing needs sorting.
+pub fn depth_key_bits(min_key: u32, max_key: u32, intersections: usize) -> u32 {
+    if intersections == 0 || min_key > max_key {
+        0
+    } else {
+        bit_length(min_key ^ max_key)
+    }
 }
 
 /// Number of bits needed to hold `max_value` (0 for 0).
@@ -903,6 +968,7 @@ impl Ctx {
 
     /// Reads the first `len` words of `handle`.
     fn read_words(&self, handle: &Handle, len: usize) -> Vec<u32> {
+        HOST_READS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let bytes = self
             .client
             .read_one(handle.clone())
@@ -916,10 +982,11 @@ impl Ctx {
 
     /// Reads the first word of `handle`.
     fn read_u32(&self, handle: &Handle) -> u32 {
+        HOST_READS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let bytes = self
             .client
             .read_one(handle.clone())
-            .expect("reading the intersection count back from the device failed");
+            .expect("reading a value back from the device failed");
         u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
     }
 
@@ -990,6 +1057,29 @@ mod tests {
             intersections: m,
             slots,
         }
+    }
+
+    #[test]
+    fn depth_sort_keeps_only_the_differing_key_bits() {
+        let key = |z: f32| z.to_bits();
+        // A head about a metre away: depths 0.8 to 1.2 share the top 8 key bits.
+        assert_eq!(depth_key_bits(key(0.8), key(1.2), 10), 24);
+        // Within one binade only the mantissa bits can differ.
+        assert_eq!(depth_key_bits(key(1.0), key(1.5), 10), 23);
+        // One depth: nothing to sort; no intersections: nothing to sort.
+        assert_eq!(depth_key_bits(key(2.0), key(2.0), 10), 0);
+        assert_eq!(depth_key_bits(u32::MAX, 0, 0), 0);
+        // A scene from the near plane to far away still needs the exponent bits.
+        assert_eq!(depth_key_bits(key(0.011), key(1.0e4), 10), 31);
+        // Sorting by the low bits orders every key of the span as the full key does.
+        let keys: Vec<u32> = [0.8f32, 1.2, 0.95, 1.0, 1.19, 0.81].map(key).to_vec();
+        let bits = depth_key_bits(key(0.8), key(1.2), keys.len());
+        let mask = (1u64 << bits) as u32 - 1;
+        let mut by_low: Vec<usize> = (0..keys.len()).collect();
+        by_low.sort_by_key(|&i| keys[i] & mask);
+        let mut by_full: Vec<usize> = (0..keys.len()).collect();
+        by_full.sort_by_key(|&i| keys[i]);
+        assert_eq!(by_low, by_full);
     }
 
     #[test]

@@ -128,7 +128,7 @@ const S: () = ();
 #[rustfmt::skip]
 fn kernels_without_float_atomics() -> Vec<(&'static str, String)> {
     vec![
-        ("project", shader!(project::Project, line(); B, B, B, B, B, B, B, B, B, S, S, S)),
+        ("project", shader!(project::Project, line(); B, B, B, B, B, B, B, B, B, B, S, S, S)),
         ("emit_intersections", shader!(emit_intersections::EmitIntersections, line(); B, B, B, B, B, B, S, S)),
         ("radix_histogram", shader!(radix_histogram::RadixHistogram, line(); B, B, S, S, S)),
         ("radix_scatter", shader!(radix_scatter::RadixScatter, line(); B, B, B, B, B, S, S, S)),
@@ -141,7 +141,7 @@ fn kernels_without_float_atomics() -> Vec<(&'static str, String)> {
         ("rasterize", shader!(rasterize::Rasterize, tile(); B, B, B, B, B, B, B, S, S, S)),
         (
             "rasterize_backward (slots)",
-            shader!(rasterize_backward::RasterizeBackward<f32>, tile(); B, B, B, B, B, B, B, B, B, B, S, S, S, false),
+            shader!(rasterize_backward::RasterizeBackward<f32>, tile(); B, B, B, B, B, B, B, B, B, B, S, S, S, false, false),
         ),
         ("sum_slots", shader!(sum_slots::SumSlots, line(); B, B, B, B, S)),
         ("project_backward", shader!(project_backward::ProjectBackward, line(); B, B, B, B, B, B, B, B, B, S)),
@@ -173,7 +173,7 @@ fn float_atomic_backward_needs_the_capability_and_has_it_checked() {
     #[rustfmt::skip]
     let src = shader!(
         rasterize_backward::RasterizeBackward<Atomic<f32>>, tile();
-        B, B, B, B, B, B, B, B, B, B, S, S, S, true
+        B, B, B, B, B, B, B, B, B, B, S, S, S, true, false
     );
     assert!(
         src.contains("atomic<f32>"),
@@ -187,4 +187,26 @@ fn float_atomic_backward_needs_the_capability_and_has_it_checked() {
     let err = validate(&src, without_float_atomics()).expect_err("rejected without the capability");
     assert!(err.contains("SHADER_FLOAT32_ATOMIC"), "{err}");
     validate(&src, Capabilities::all()).expect("valid with float atomics");
+}
+
+/// The subgroup-reduced backward (`plane_reduce`, chosen on adapters with subgroups): nine
+/// `subgroupAdd`s and one set of nine atomics for the plane's first unit; naga accepts it
+/// with subgroup operations and float atomics and rejects it without subgroups, which is
+/// why the host picks it only where cubecl reports plane operations.
+#[test]
+fn plane_reduced_backward_needs_subgroups() {
+    #[rustfmt::skip]
+    let src = shader!(
+        rasterize_backward::RasterizeBackward<Atomic<f32>>, tile();
+        B, B, B, B, B, B, B, B, B, B, S, S, S, true, true
+    );
+    assert_eq!(src.matches("subgroupAdd(").count(), 9, "nine plane sums");
+    assert_eq!(src.matches("atomicAdd(").count(), 9, "one set of atomics");
+    validate(&src, Capabilities::all()).expect("valid with subgroups and float atomics");
+    let without = Capabilities::all()
+        - Capabilities::SUBGROUP
+        - Capabilities::SUBGROUP_BARRIER
+        - Capabilities::SUBGROUP_VERTEX_STAGE;
+    let err = validate(&src, without).expect_err("rejected without subgroups");
+    assert!(err.to_lowercase().contains("subgroup"), "{err}");
 }

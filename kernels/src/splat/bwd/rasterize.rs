@@ -18,7 +18,11 @@
 //! Per-Gaussian accumulation of the nine screen-space gradients has two variants, chosen at
 //! compile time by `float_atomics` together with the element type `G` of `grad2d`:
 //! - `true`, `G = Atomic<f32>`: every contributing pixel adds into `grad2d[g]` with
-//!   `Atomic<f32>::fetch_add`.
+//!   `Atomic<f32>::fetch_add`. With `plane_reduce` (adapters with subgroup operations) the
+//!   pixels of a plane (subgroup) first sum their nine values with `plane_sum`, and only one
+//!   unit of the plane (its smallest index) adds them: one set of atomics per plane and Gaussian instead of one
+//!   per pixel (8 instead of up to 256 per tile for 32-wide planes), as gsplat reduces per
+//!   warp before its atomics.
 //! - `false`, `G = f32` (devices without float atomics): `grad2d` is a plain one-entry dummy,
 //!   so the generated shader declares no `atomic<f32>` at all (CubeCL binds every argument,
 //!   used or not, and WGSL validation rejects an `atomic<f32>` binding on adapters without
@@ -81,7 +85,7 @@ impl GradCell for f32 {
 
 /// See the module documentation. Launch with a `(tiles_x, tiles_y)` grid of
 /// `(TILE_SIZE, TILE_SIZE)` workgroups; `G = Atomic<f32>` with `float_atomics`, `G = f32`
-/// without.
+/// without. `plane_reduce` (only with `float_atomics`) needs plane operations.
 #[allow(clippy::too_many_arguments)]
 #[cube(launch_unchecked)]
 pub fn rasterize_backward<G: GradCell>(
@@ -99,6 +103,7 @@ pub fn rasterize_backward<G: GradCell>(
     height: u32,
     tiles_x: u32,
     #[comptime] float_atomics: bool,
+    #[comptime] plane_reduce: bool,
 ) {
     let tid = UNIT_POS;
     let px = CUBE_POS_X * TILE_SIZE + UNIT_POS_X;
@@ -129,6 +134,13 @@ pub fn rasterize_backward<G: GradCell>(
             * t_final;
 
     let range_start = tile_ranges[(tile * 2) as usize];
+    // The unit of its plane that adds the plane's sums: the one with the smallest index in
+    // the workgroup. Not `UNIT_POS_PLANE == 0` or `plane_elect()`: both read the subgroup
+    // invocation id, which WGSL does not offer for multi-dimensional workgroups.
+    let mut plane_leader = false;
+    if plane_reduce {
+        plane_leader = plane_min(tid) == tid;
+    }
 
     // The workgroup walks up to the largest `last` of its pixels.
     let max_end = Shared::<[Atomic<u32>]>::new_slice(1usize);
@@ -240,7 +252,33 @@ pub fn rasterize_backward<G: GradCell>(
                 }
             }
 
-            if float_atomics {
+            if float_atomics && plane_reduce {
+                // Every unit of the workgroup is at the same step (the loop bounds are
+                // uniform), so the plane operations run in uniform control flow.
+                if plane_any(contributes) {
+                    let s_u = plane_sum(d_u);
+                    let s_v = plane_sum(d_v);
+                    let s_a = plane_sum(d_a);
+                    let s_b = plane_sum(d_b);
+                    let s_c = plane_sum(d_c);
+                    let s_red = plane_sum(d_red);
+                    let s_green = plane_sum(d_green);
+                    let s_blue = plane_sum(d_blue);
+                    let s_opacity = plane_sum(d_opacity);
+                    if plane_leader {
+                        let base = (s_gaussian[t] * GRAD2D_STRIDE) as usize;
+                        G::add_grad(grad2d, base, s_u);
+                        G::add_grad(grad2d, base + 1, s_v);
+                        G::add_grad(grad2d, base + 2, s_a);
+                        G::add_grad(grad2d, base + 3, s_b);
+                        G::add_grad(grad2d, base + 4, s_c);
+                        G::add_grad(grad2d, base + 5, s_red);
+                        G::add_grad(grad2d, base + 6, s_green);
+                        G::add_grad(grad2d, base + 7, s_blue);
+                        G::add_grad(grad2d, base + 8, s_opacity);
+                    }
+                }
+            } else if float_atomics {
                 if contributes {
                     let base = (s_gaussian[t] * GRAD2D_STRIDE) as usize;
                     G::add_grad(grad2d, base, d_u);
