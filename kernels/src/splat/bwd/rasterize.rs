@@ -252,34 +252,26 @@ pub fn rasterize_backward<G: GradCell>(
                 }
             }
 
-            if float_atomics && plane_reduce {
-                // Every unit of the workgroup is at the same step (the loop bounds are
-                // uniform), so the plane operations run in uniform control flow.
-                if plane_any(contributes) {
-                    let s_u = plane_sum(d_u);
-                    let s_v = plane_sum(d_v);
-                    let s_a = plane_sum(d_a);
-                    let s_b = plane_sum(d_b);
-                    let s_c = plane_sum(d_c);
-                    let s_red = plane_sum(d_red);
-                    let s_green = plane_sum(d_green);
-                    let s_blue = plane_sum(d_blue);
-                    let s_opacity = plane_sum(d_opacity);
-                    if plane_leader {
-                        let base = (s_gaussian[t] * GRAD2D_STRIDE) as usize;
-                        G::add_grad(grad2d, base, s_u);
-                        G::add_grad(grad2d, base + 1, s_v);
-                        G::add_grad(grad2d, base + 2, s_a);
-                        G::add_grad(grad2d, base + 3, s_b);
-                        G::add_grad(grad2d, base + 4, s_c);
-                        G::add_grad(grad2d, base + 5, s_red);
-                        G::add_grad(grad2d, base + 6, s_green);
-                        G::add_grad(grad2d, base + 7, s_blue);
-                        G::add_grad(grad2d, base + 8, s_opacity);
+            if float_atomics {
+                let mut add = contributes;
+                if plane_reduce {
+                    // Every unit of the workgroup is at the same step (the loop bounds are
+                    // uniform), so the plane operations run in uniform control flow.
+                    add = false;
+                    if plane_any(contributes) {
+                        d_u = plane_sum(d_u);
+                        d_v = plane_sum(d_v);
+                        d_a = plane_sum(d_a);
+                        d_b = plane_sum(d_b);
+                        d_c = plane_sum(d_c);
+                        d_red = plane_sum(d_red);
+                        d_green = plane_sum(d_green);
+                        d_blue = plane_sum(d_blue);
+                        d_opacity = plane_sum(d_opacity);
+                        add = plane_leader;
                     }
                 }
-            } else if float_atomics {
-                if contributes {
+                if add {
                     let base = (s_gaussian[t] * GRAD2D_STRIDE) as usize;
                     G::add_grad(grad2d, base, d_u);
                     G::add_grad(grad2d, base + 1, d_v);
