@@ -4,9 +4,11 @@
 //! `splat::gpu`):
 //!
 //! 1. [`project`]: one thread per Gaussian: camera-space mean, EWA 2D covariance, conic,
-//!    opacity-aware screen rectangle of tiles, depth sort key.
+//!    opacity-aware screen rectangle of tiles, depth sort key; per workgroup, then
+//!    globally, the smallest and largest visible key and the total tile count, which the
+//!    host reads back.
 //! 2. [`iota`], [`radix_sort`] (with [`scan`]): stable LSD radix sort of the Gaussians by
-//!    depth.
+//!    depth, over the low key bits in which the visible keys differ.
 //! 3. [`gather`] and [`scan`]: tile counts in depth order and their exclusive prefix sum,
 //!    the first index of each Gaussian's intersections.
 //! 4. [`emit_intersections`]: one thread per Gaussian (in depth order) writes a
@@ -15,7 +17,8 @@
 //! 6. [`tile_ranges`]: `[start, end)` of every tile in the sorted intersections.
 //! 7. [`rasterize`]: one 16x16 workgroup per tile composites front to back.
 //!
-//! The backward pipeline is in [`bwd`]: [`bwd::rasterize`] (per tile, back to front) then
+//! The backward pipeline is in [`bwd`]: [`bwd::rasterize`] (per tile, back to front; float
+//! atomics, optionally after a subgroup sum, or per-intersection slots) then
 //! [`bwd::sum_slots`] (only without float atomics) and [`bwd::project`].
 //!
 //! Every kernel reads camera values from one small `f32` buffer laid out as described in
