@@ -11,15 +11,15 @@
 //! The splat cannot be a lazy fusion op (`#[backend_extension(..., Fusion)]` with
 //! `#[fusion(...)]` metadata): its forward sizes the intersection buffers by a count read
 //! back from the device, so its output shapes are not known before it runs. The splat and
-//! lift ops therefore run *eagerly* on the fusion backend: [`resolve_float`] executes the queued fused
-//! work that produces an input and hands over the inner backend's tensor, the inner
-//! backend's kernels run, and [`register_float`] hands their outputs back to the fusion
-//! stream as fresh tensors (the way burn-fusion's own `float_from_data` registers a tensor
-//! it did not compute). The inputs and outputs are whole tensors; nothing is copied.
+//! lift ops therefore run *eagerly* on the fusion backend: [`resolve_float`] executes the
+//! queued fused work that produces an input and hands over the inner backend's tensor, the
+//! inner backend's kernels run, and [`register_float`] hands their outputs back to the
+//! fusion stream as fresh tensors (the way burn-fusion's own `float_from_data` registers a
+//! tensor it did not compute). The inputs and outputs are whole tensors; nothing is copied.
 
 use burn::backend::TensorMetadata;
 use burn::backend::fusion::stream::StreamId;
-use burn::backend::fusion::{Fusion, FusionBackend, NoOp, get_client};
+use burn::backend::fusion::{Fusion, FusionBackend, FusionTensor, NoOp, get_client};
 use burn::backend::ir::{BackendIr, InitOperationIr, OperationIr};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 
@@ -54,12 +54,13 @@ pub fn register_int<B: FusionBackend>(
     register::<B>(B::int_tensor_handle(t), shape, dtype, device)
 }
 
+/// Registers an inner backend's tensor (float or int alike) on the fusion stream.
 fn register<B: FusionBackend>(
     handle: <B as BackendIr>::Handle,
     shape: burn::tensor::Shape,
     dtype: burn::tensor::DType,
     device: &<B as burn::backend::BackendTypes>::Device,
-) -> FloatTensor<Fusion<B>> {
+) -> FusionTensor<B::FusionRuntime> {
     let client = get_client::<B>(device);
     let desc = InitOperationIr::create(shape, dtype, || client.register_tensor_handle(handle));
     let mut outputs = client.register(

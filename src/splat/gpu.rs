@@ -307,8 +307,8 @@ pub fn forward(
             );
         }
 
-        // The scan below counts in u32; the outputs index in i32. Only scenes whose
-        // worst case could overflow pay for an exact host-side check.
+        // The tile total (project's atomics, the scan) counts in u32; the outputs index in
+        // i32. Only scenes whose worst case could overflow pay for an exact host-side check.
         if n as u64 * frame.num_tiles() as u64 > i32::MAX as u64 {
             let total: u64 = ctx
                 .read_words(&tile_counts, n)
@@ -326,13 +326,14 @@ pub fn forward(
         isects = stats[TOTAL_TILES] as usize;
         scene.intersections = Some(isects);
         assert_fits(&ctx, &scene);
-        let depth_bits = depth_key_bits(stats[KEY_MIN], stats[KEY_MAX], isects);
-        let order = ctx.iota(n);
-        let (_, gaussian_from_depth_rank) = ctx.radix_sort(&depth_keys, &order, n, depth_bits);
-        let counts_by_depth = ctx.gather(&tile_counts, &gaussian_from_depth_rank, n);
-        let (isect_offsets, _) = ctx.exclusive_scan(&counts_by_depth, n);
 
+        // Without intersections (nothing visible) there is nothing to sort or emit.
         if isects > 0 {
+            let depth_bits = depth_key_bits(stats[KEY_MIN], stats[KEY_MAX], isects);
+            let order = ctx.iota(n);
+            let (_, gaussian_from_depth_rank) = ctx.radix_sort(&depth_keys, &order, n, depth_bits);
+            let counts_by_depth = ctx.gather(&tile_counts, &gaussian_from_depth_rank, n);
+            let (isect_offsets, _) = ctx.exclusive_scan(&counts_by_depth, n);
             let keys = ctx.empty(isects);
             let gaussians = ctx.empty(isects);
             let (count, dim) = ctx.elementwise(n);
