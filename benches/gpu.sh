@@ -9,9 +9,10 @@
 # 3. `bench fps` at paper scale (configs/paper.json networks, 550 x 802) on wgpu;
 # 4. one training step at paper scale (configs/train_paper.json, 550 x 802, batch 1) on wgpu
 #    (`cargo bench --bench train`), with its kernel launches and blocking reads per step;
-# and prints one table. Logs go to $GPU_SH_OUT (default target/gpu-sh/). Budget: under 10
-# minutes on a 16-core machine with a GPU; the release build is most of it from a clean
-# clone. Please report the table (issue tracker or README's figures).
+# and prints one table. Logs go to $GPU_SH_OUT (default $CARGO_TARGET_DIR/gpu-sh/, else
+# target/gpu-sh/). Budget: under 10 minutes on a 16-core machine with a GPU; the release
+# build is most of it from a clean clone. Please report the table (issue tracker or
+# README's figures).
 #
 # GPU_SH_CUDA=1 builds with `--features cuda` and adds the same two measurements on burn's
 # CUDA backend (NVIDIA GPUs).
@@ -21,9 +22,15 @@
 #
 # GPU_SH_PROFILE=dev builds and measures in the dev profile instead of release (the test
 # build's artifacts; for the smoke test, not for figures).
+#
+# A GPU machine without Rust: GPU_SH_PACK=1 builds here and copies the four executables
+# (texavatars, the two parity test binaries, the training-step benchmark) into
+# $GPU_SH_OUT/bin, then stops; on the GPU machine, in a checkout of the same commit (for
+# configs/), GPU_SH_BIN=<that folder> runs stages 2-4 with them instead of building.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-out=${GPU_SH_OUT:-target/gpu-sh}
+target=${CARGO_TARGET_DIR:-target}
+out=${GPU_SH_OUT:-$target/gpu-sh}
 mkdir -p "$out"
 quick=${GPU_SH_QUICK:-0}
 cuda=${GPU_SH_CUDA:-0}
@@ -38,21 +45,56 @@ if [ "$quick" = 1 ]; then
 else
     net=configs/paper.json; size=550x802; renders=100; rounds=3; bench_config=paper
 fi
-target=${CARGO_TARGET_DIR:-target}
 t0=$(date +%s)
 stage() { echo "gpu.sh: $* ($(( $(date +%s) - t0 )) s)" >&2; }
 
 profile=${GPU_SH_PROFILE:-release}
 profile_dir=$profile
 if [ "$profile" = dev ]; then profile_dir=debug; fi
-stage "1/4 build ($profile profile)"
-cargo build --profile "$profile" "${features[@]}" 2>&1 | tail -n 3 >&2
-exe="$target/$profile_dir/texavatars"
+# `cargo bench` without --profile uses the bench profile, which inherits release and shares
+# its artifacts.
+bench_profile=()
+if [ "$profile" != release ]; then bench_profile=(--profile "$profile"); fi
+# The path of the executable a `--message-format=json` build made for target $1.
+executable() { grep -o "\"executable\":\"[^\"]*/$1-[0-9a-f]*\"" | sed 's/.*":"//; s/"$//' | tail -n 1; }
+if [ -n "${GPU_SH_BIN:-}" ]; then
+    bin=$GPU_SH_BIN
+    profile="$profile (prebuilt, $bin)"
+    stage "1/4 prebuilt executables in $bin"
+    for e in texavatars gpu_kernels splat_gpu train; do
+        [ -x "$bin/$e" ] || { echo "gpu.sh: GPU_SH_BIN=$bin has no executable $e" >&2; exit 1; }
+    done
+else
+    stage "1/4 build ($profile profile)"
+    bin=$out/bin
+    mkdir -p "$bin"
+    cargo build --profile "$profile" "${features[@]}" --bin texavatars 2>&1 | tail -n 3 >&2
+    cp "$target/$profile_dir/texavatars" "$bin/texavatars"
+    cargo test --profile "$profile" "${features[@]}" --no-run --message-format=json \
+        --test gpu_kernels --test splat_gpu >"$out/build_tests.json"
+    cargo bench "${bench_profile[@]}" "${features[@]}" --no-run --message-format=json \
+        --bench train >"$out/build_bench.json"
+    for e in gpu_kernels splat_gpu; do
+        cp "$(executable "$e" <"$out/build_tests.json")" "$bin/$e"
+    done
+    cp "$(executable train <"$out/build_bench.json")" "$bin/train"
+    git describe --always --dirty >"$bin/commit" 2>/dev/null || echo unknown >"$bin/commit"
+    if [ "${GPU_SH_PACK:-0}" = 1 ]; then
+        echo "gpu.sh: executables in $bin; on the GPU machine: GPU_SH_BIN=<copy of it> bash benches/gpu.sh"
+        exit 0
+    fi
+fi
+exe="$bin/texavatars"
 
 stage "2/4 GPU parity tests (wgpu)"
 adapter=$(vulkaninfo --summary 2>/dev/null | grep -m1 -E "deviceName" | sed 's/.*= //' || true)
-if cargo test --profile "$profile" "${features[@]}" --test gpu_kernels --test splat_gpu >"$out/tests.log" 2>&1; then
-    tests="passed ($(grep -h 'test result' "$out/tests.log" | awk '{s += $4} END {print s}') tests)"
+: >"$out/tests.log"
+tests_ok=1
+for e in gpu_kernels splat_gpu; do
+    "$bin/$e" >>"$out/tests.log" 2>&1 || tests_ok=0
+done
+if [ "$tests_ok" = 1 ]; then
+    tests="passed ($(grep -h '^test result' "$out/tests.log" | awk '{s += $4} END {print s}') tests)"
 else
     tests="FAILED (see $out/tests.log)"
 fi
@@ -67,7 +109,7 @@ for b in "${backends[@]}"; do
 
     stage "4/4 training step ($bench_config, $b)"
     TEXAVATARS_BENCH_CONFIG=$bench_config TEXAVATARS_BENCH_BACKEND=$b \
-        cargo bench --profile "$profile" "${features[@]}" --bench train >"$out/train_$b.log" 2>&1 || true
+        "$bin/train" --bench >"$out/train_$b.log" 2>&1 || true
     t=$(grep -A2 "train_iteration_" "$out/train_$b.log" | grep -m1 -oE "time: +\[[^]]*\]" || true)
     step[$b]=${t:-failed (see $out/train_$b.log)}
     l=$(grep -m1 "^launches per training step" "$out/train_$b.log" | sed 's/^launches per training step ([^)]*): //' || true)
@@ -79,7 +121,7 @@ total=$(( $(date +%s) - t0 ))
     echo
     echo "| texavatars on $(hostname), $(date -u +%Y-%m-%d) | |"
     echo "|---|---|"
-    echo "| commit | $(git rev-parse --short HEAD 2>/dev/null || echo unknown) |"
+    echo "| commit | $(cat "$bin/commit" 2>/dev/null || git describe --always --dirty 2>/dev/null || echo unknown) |"
     echo "| cargo profile | $profile |"
     echo "| GPU | $(nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null | head -n1 || echo unknown) |"
     echo "| Vulkan device | ${adapter:-unknown (vulkaninfo not installed)} |"

@@ -28,7 +28,15 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn bench(c: &mut Criterion) {
     let name = std::env::var("TEXAVATARS_BENCH_CONFIG").unwrap_or_else(|_| "cpu".into());
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("configs/train_{name}.json"));
+    // The source tree it was built from; where the executable runs elsewhere (`benches/gpu.sh`
+    // with GPU_SH_BIN on a machine without Rust), the configs of the working directory.
+    let built_in = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = if built_in.join("configs").is_dir() {
+        built_in
+    } else {
+        Path::new(".")
+    };
+    let path = root.join(format!("configs/train_{name}.json"));
     let config = TrainConfig::load(&path).expect("config");
     let head = HeadAsset::embedded().expect("head");
     let (w, h) = if name == "paper" {

@@ -793,6 +793,13 @@ fn radix_sort_is_stable() {
         (3000, 8, 50),
         (70_000, 32, 1 << 32),
         (9000, 12, 4096),
+        // Bits above the sorted ones: not part of the order (the last pass is narrowed).
+        (5000, 11, 1 << 32),
+        (3000, 20, 1 << 32),
+        // Few distinct digits across block boundaries (RADIX_BLOCK = 1024), one pair past
+        // a block.
+        (2049, 8, 3),
+        (4096, 16, 2),
     ] {
         let keys: Vec<u32> = (0..n).map(|_| (rng.next_u64() % modulus) as u32).collect();
         let values: Vec<u32> = (0..n as u32).collect();

@@ -930,6 +930,9 @@ impl Ctx {
         let (mut cur_keys, mut cur_values) = (keys.clone(), values.clone());
         for (pass, shift) in (0..bits).step_by(RADIX_BITS as usize).enumerate() {
             let (next_keys, next_values) = buffers[pass % 2].clone();
+            // The last pass may take fewer than RADIX_BITS bits: the bits above `bits` are
+            // not part of the order.
+            let digit_mask = ((1u64 << (bits - shift).min(RADIX_BITS)) - 1) as u32;
             let (count, dim) = self.blocks(blocks, RADIX_THREADS);
             // SAFETY: one workgroup per block, bounds-checked against `len` and `blocks`;
             // scattered positions are a permutation of `0..len`.
@@ -942,6 +945,7 @@ impl Ctx {
                     arg(&histogram, histogram_len),
                     len as u32,
                     shift,
+                    digit_mask,
                     blocks as u32,
                 );
             }
@@ -958,6 +962,7 @@ impl Ctx {
                     arg(&next_values, len),
                     len as u32,
                     shift,
+                    digit_mask,
                     blocks as u32,
                 );
             }

@@ -130,8 +130,8 @@ fn kernels_without_float_atomics() -> Vec<(&'static str, String)> {
     vec![
         ("project", shader!(project::Project, line(); B, B, B, B, B, B, B, B, B, B, S, S, S)),
         ("emit_intersections", shader!(emit_intersections::EmitIntersections, line(); B, B, B, B, B, B, S, S)),
-        ("radix_histogram", shader!(radix_histogram::RadixHistogram, line(); B, B, S, S, S)),
-        ("radix_scatter", shader!(radix_scatter::RadixScatter, line(); B, B, B, B, B, S, S, S)),
+        ("radix_histogram", shader!(radix_histogram::RadixHistogram, line(); B, B, S, S, S, S)),
+        ("radix_scatter", shader!(radix_scatter::RadixScatter, line(); B, B, B, B, B, S, S, S, S)),
         ("fill_u32", shader!(fill_u32::FillU32, line(); B, S, S)),
         ("gather_u32", shader!(gather_u32::GatherU32, line(); B, B, B, S)),
         ("iota_u32", shader!(iota_u32::IotaU32, line(); B, S)),
@@ -153,6 +153,45 @@ fn kernels_without_float_atomics() -> Vec<(&'static str, String)> {
         ("blend", shader!(blend::Blend, line(); B, S, S, B, B, B, S, S, true)),
         ("opacity_grad", shader!(opacity_grad::OpacityGrad, line(); B, B, B, S)),
     ]
+}
+
+/// WebGPU's default `maxComputeWorkgroupStorageSize` (<https://www.w3.org/TR/webgpu/#limits>),
+/// the workgroup memory every adapter grants without asking for more.
+const WEBGPU_WORKGROUP_STORAGE: u32 = 16384;
+
+/// Bytes of workgroup memory the WGSL declares (naga's layout of its `var<workgroup>`s).
+fn workgroup_bytes(src: &str) -> u32 {
+    let module = naga::front::wgsl::parse_str(src).expect("the WGSL parses");
+    let mut layouter = naga::proc::Layouter::default();
+    layouter
+        .update(module.to_ctx())
+        .expect("naga lays the types out");
+    module
+        .global_variables
+        .iter()
+        .filter(|(_, var)| var.space == naga::AddressSpace::WorkGroup)
+        .map(|(_, var)| layouter[var.ty].size)
+        .sum()
+}
+
+#[test]
+fn every_kernel_fits_webgpu_default_workgroup_memory() {
+    for (name, src) in kernels_without_float_atomics() {
+        let bytes = workgroup_bytes(&src);
+        assert!(
+            bytes <= WEBGPU_WORKGROUP_STORAGE,
+            "{name}: {bytes} bytes of workgroup memory, over WebGPU's default {WEBGPU_WORKGROUP_STORAGE}"
+        );
+        if name == "radix_scatter" {
+            // The 8-bit pass's block-local sort: counts, segment totals, the sorted entries
+            // and the digit starts (kernels/src/splat/radix_sort/scatter.rs) -- the measure
+            // sees them.
+            assert!(
+                bytes > 12 * 1024,
+                "radix_scatter: only {bytes} bytes counted"
+            );
+        }
+    }
 }
 
 #[test]

@@ -11,15 +11,24 @@ use cubecl::prelude::*;
 
 use super::{RADIX_BLOCK, RADIX_BUCKETS, RADIX_ITEMS};
 
-/// Counts, per block, how many keys have each digit `(key >> shift) & (RADIX_BUCKETS - 1)`.
+/// Counts, per block, how many keys have each digit `(key >> shift) & digit_mask`
+/// (`digit_mask < RADIX_BUCKETS`).
 #[cube(launch_unchecked)]
-pub fn radix_histogram(keys: &[u32], histogram: &mut [u32], n: u32, shift: u32, num_blocks: u32) {
+pub fn radix_histogram(
+    keys: &[u32],
+    histogram: &mut [u32],
+    n: u32,
+    shift: u32,
+    digit_mask: u32,
+    num_blocks: u32,
+) {
     let block = CUBE_POS as u32;
     if block >= num_blocks {
         terminate!();
     }
     let tid = UNIT_POS;
     let counts = Shared::<[Atomic<u32>]>::new_slice(RADIX_BUCKETS as usize);
+    // One digit per thread (RADIX_THREADS >= RADIX_BUCKETS, asserted in the module).
     if tid < RADIX_BUCKETS {
         counts[tid as usize].store(0u32);
     }
@@ -28,7 +37,7 @@ pub fn radix_histogram(keys: &[u32], histogram: &mut [u32], n: u32, shift: u32, 
     for j in 0..RADIX_ITEMS {
         let idx = base + j;
         if idx < n {
-            let digit = (keys[idx as usize] >> shift) & (RADIX_BUCKETS - 1);
+            let digit = (keys[idx as usize] >> shift) & digit_mask;
             counts[digit as usize].fetch_add(1u32);
         }
     }
