@@ -4,7 +4,8 @@
 //! wgpu (lavapipe when there is no GPU).
 //!
 //! `cargo bench --bench splat`; `TEXAVATARS_BENCH=cpu`, `=flex` or `=wgpu` runs one backend
-//! only.
+//! only; `=wgpu` also times the backward's three accumulation paths (float atomics, subgroup
+//! sums then atomics, per-intersection slots) against each other.
 //! Every iteration ends with a read-back, so GPU work is included in the time.
 
 use burn::backend::Dispatch;
@@ -132,5 +133,112 @@ fn bench_cpu_stages(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_cpu_stages, bench);
+/// The GPU backward's three ways of accumulating per-Gaussian gradients on the same scene
+/// (`TEXAVATARS_BENCH=wgpu` only): one float atomic add per contributing pixel
+/// (`atomics`), a subgroup sum first where cubecl reports subgroups for the adapter
+/// (`plane_atomics`), and per-intersection slots with a deterministic sum (`slots`, the path
+/// of adapters without float atomics).
+fn bench_gpu_accumulation(c: &mut Criterion) {
+    use burn::tensor::{DType, Shape};
+    use burn_cubecl::CubeDevice;
+    use burn_cubecl::cubecl::device::WgpuDeviceKind;
+    use burn_cubecl::cubecl::prelude::*;
+    use burn_cubecl::tensor::CubeTensor;
+    use texavatars::splat::gpu::{self, GpuOptions, PlaneReduction};
+
+    if std::env::var("TEXAVATARS_BENCH").as_deref() != Ok("wgpu") {
+        return;
+    }
+    let Ok(dev) = CubeDevice::wgpu(WgpuDeviceKind::DefaultDevice) else {
+        eprintln!("no wgpu device: the accumulation benchmark is skipped");
+        return;
+    };
+    let client = dev.client();
+    let upload = |data: &[f32], shape: &[usize]| {
+        let handle = client.create_from_slice(f32::as_bytes(data));
+        CubeTensor::new_contiguous(
+            client.clone(),
+            dev.clone(),
+            Shape::from(shape.to_vec()),
+            handle,
+            DType::F32,
+        )
+    };
+    let cam = demo::camera();
+    let (w, h) = (cam.camera.width as usize, cam.camera.height as usize);
+    let mut variants = vec![
+        (
+            "atomics",
+            GpuOptions {
+                allow_float_atomics: true,
+                plane_reduction: PlaneReduction::Off,
+            },
+        ),
+        (
+            "slots",
+            GpuOptions {
+                allow_float_atomics: false,
+                plane_reduction: PlaneReduction::Off,
+            },
+        ),
+    ];
+    if gpu::plane_ops_supported(&client) {
+        variants.push((
+            "plane_atomics",
+            GpuOptions {
+                allow_float_atomics: true,
+                plane_reduction: PlaneReduction::Auto,
+            },
+        ));
+    }
+    let mut group = c.benchmark_group("splat_wgpu_backward_accumulation_802x550");
+    group.sample_size(10);
+    group.warm_up_time(Duration::from_secs(1));
+    group.measurement_time(Duration::from_secs(4));
+    let g: Vec<f32> = (0..h * w * 4)
+        .map(|i| ((i % 7) as f32 - 3.0) * 0.1)
+        .collect();
+    for n in [100_000usize, 200_000] {
+        let ply = demo::scene(n, 7);
+        let colors: Vec<f32> = ply.sh.iter().map(|c| (c * sh::C0 + 0.5).max(0.0)).collect();
+        let (cov6, opacities) = (ply.cov6(), ply.opacities());
+        // Uploaded once; an iteration clones the handles, as the backend's backward does.
+        let inputs = [
+            upload(&ply.means, &[n, 3]),
+            upload(&cov6, &[n, 6]),
+            upload(&colors, &[n, 3]),
+            upload(&opacities, &[n]),
+        ];
+        let [m, cv, col, o] = inputs.clone();
+        let fwd = gpu::forward(m, cv, col, o, &cam.camera, cam.background);
+        let grad = upload(&g, &[h, w, 4]);
+        for (name, options) in &variants {
+            eprintln!(
+                "{name} at {n} Gaussians: {:?}",
+                options.accumulation(&client)
+            );
+            group.bench_with_input(BenchmarkId::new(*name, n), &n, |b, _| {
+                b.iter(|| {
+                    let [m, cv, col, o] = inputs.clone();
+                    let [.., go, _] = gpu::backward_with_options(
+                        m,
+                        cv,
+                        col,
+                        o,
+                        &cam.camera,
+                        cam.background,
+                        &fwd,
+                        grad.clone(),
+                        *options,
+                    );
+                    // The last gradient written: waits for the whole backward.
+                    let _ = burn_cubecl::ops::into_data_sync(go);
+                })
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_cpu_stages, bench, bench_gpu_accumulation);
 criterion_main!(benches);

@@ -680,7 +680,8 @@ pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport
             ),
         ));
     }
-    let vgg = if config.ablations.vgg {
+    // The weights are needed only where the schedule reaches the VGG term.
+    let vgg = if config.ablations.vgg && config.vgg_from() < config.iterations {
         let v = VggPerceptual::load(&device)
             .map_err(|e| {
                 Error::invalid(

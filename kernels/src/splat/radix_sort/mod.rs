@@ -38,4 +38,4 @@ pub const LOCAL_BUCKETS: u32 = 1 << LOCAL_BITS;
 // sort's steps cover the digit exactly.
 const _: () = assert!(RADIX_THREADS >= RADIX_BUCKETS);
 const _: () = assert!(RADIX_BLOCK <= 1 << 16 && RADIX_BITS <= 16);
-const _: () = assert!(RADIX_BITS % LOCAL_BITS == 0);
+const _: () = assert!(RADIX_BITS.is_multiple_of(LOCAL_BITS));
