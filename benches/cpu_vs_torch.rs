@@ -14,7 +14,8 @@
 //! `cargo bench --bench cpu_vs_torch`. `TEXAVATARS_BENCH_RUNS` sets the timed runs per row
 //! (default 10, after 2 warm-up runs); `TEXAVATARS_BENCH_SKIP_PAPER=1` leaves out the
 //! `paper` decoders and the 550 x 802 loss. Without `python3 -c "import torch"` the PyTorch
-//! column says so and the burn side still runs.
+//! column says so and the burn side still runs. `TEXAVATARS_BENCH_ROWS` (a comma-separated
+//! subset of `decoders`, `perceptual`, `step`, `step_vgg`) runs only those groups, e.g. under `perf`.
 
 #![allow(deprecated)]
 
@@ -242,6 +243,13 @@ fn train_step_ms(vgg: Option<Arc<VggPerceptual>>) -> f64 {
     ms
 }
 
+/// Whether the row group `name` is asked for (`TEXAVATARS_BENCH_ROWS`; all when unset).
+fn wanted(name: &str) -> bool {
+    std::env::var("TEXAVATARS_BENCH_ROWS")
+        .map(|v| v.split(',').any(|r| r.trim() == name))
+        .unwrap_or(true)
+}
+
 fn main() {
     let skip_paper = std::env::var("TEXAVATARS_BENCH_SKIP_PAPER").is_ok_and(|v| v == "1");
     let threads = rayon::current_num_threads();
@@ -252,7 +260,9 @@ fn main() {
     );
     let mut rows: Vec<(String, f64, Result<f64, String>)> = Vec::new();
     let mut configs = vec!["cpu"];
-    if !skip_paper {
+    if !wanted("decoders") {
+        configs.clear();
+    } else if !skip_paper {
         configs.push("paper");
     }
     for c in configs {
@@ -266,7 +276,9 @@ fn main() {
         &Device::flex().autodiff(),
     ));
     let mut sizes = vec![[200usize, 138usize]];
-    if !skip_paper {
+    if !wanted("perceptual") {
+        sizes.clear();
+    } else if !skip_paper {
         sizes.push([802, 550]);
     }
     for [h, w] in sizes {
@@ -282,18 +294,23 @@ fn main() {
             torch,
         ));
     }
-    eprintln!("training steps ...");
-    let none = || Err("no CPU PyTorch implementation of the whole step".to_string());
-    rows.push((
-        "training step `cpu`, 138x200, no VGG".into(),
-        train_step_ms(None),
-        none(),
-    ));
-    rows.push((
-        "training step `cpu`, 138x200, with VGG".into(),
-        train_step_ms(Some(vgg.clone())),
-        none(),
-    ));
+    if wanted("step") {
+        eprintln!("training steps ...");
+        let none = || Err("no CPU PyTorch implementation of the whole step".to_string());
+        rows.push((
+            "training step `cpu`, 138x200, no VGG".into(),
+            train_step_ms(None),
+            none(),
+        ));
+    }
+    if wanted("step_vgg") {
+        eprintln!("training step with the perceptual loss ...");
+        rows.push((
+            "training step `cpu`, 138x200, with VGG".into(),
+            train_step_ms(Some(vgg.clone())),
+            Err("no CPU PyTorch implementation of the whole step".to_string()),
+        ));
+    }
     println!();
     println!("| what | burn-flex | PyTorch | ratio |");
     println!("|---|---|---|---|");
