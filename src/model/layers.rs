@@ -31,6 +31,7 @@ use serde::{Deserialize, Serialize};
 use super::bias_act::bias_act;
 use super::constants::LEAKY_RELU_SLOPE;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
+pub use super::weight_norm::weight_norm;
 
 /// LeakyReLU with the networks' slope ([`LEAKY_RELU_SLOPE`] = 0.2).
 pub fn leaky_relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
@@ -52,19 +53,6 @@ pub enum Bias {
         /// Output width.
         width: usize,
     },
-}
-
-/// `w = g * v / ||v||`: one norm over all of `v`, `g` `[C_out]` broadcast along `out_dim`.
-///
-/// # Shapes
-/// - `v`: any rank `D`, with `v.dims()[out_dim] == C_out`
-/// - `g`: `[C_out]`
-/// - returns the shape of `v`
-pub fn weight_norm<const D: usize>(v: Tensor<D>, g: Tensor<1>, out_dim: usize) -> Tensor<D> {
-    let norm = v.clone().powi_scalar(2).sum().sqrt();
-    let mut shape = [1usize; D];
-    shape[out_dim] = g.dims()[0];
-    v * (g / norm).reshape(shape)
 }
 
 /// `v ~ U(-b, b)`, `b = 1 / sqrt(fan_in)`, and `g` = `||v||` per output channel.

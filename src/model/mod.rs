@@ -16,6 +16,7 @@ pub mod drivable;
 pub mod layers;
 pub mod net;
 pub mod pluecker;
+pub mod weight_norm;
 
 pub use avatar::{Ablations, Avatar, AvatarConfig, AvatarOutput, LiftSetup};
 pub use decoders::{
