@@ -3,12 +3,13 @@
 //! C1 = 0.01^2, C2 = 0.03^2, the SSIM map averaged over all pixels and channels.
 //!
 //! The window is separable, so it is applied as a 1x11 then an 11x1 convolution (exactly the
-//! 2D window, zero padding included). Plain tensor ops: differentiable on an autodiff device.
+//! 2D window, zero padding included), as one op with a handwritten backward
+//! ([`crate::metrics::blur`]); the rest is plain tensor ops, differentiable on an autodiff
+//! device.
 
-use burn::tensor::module::conv2d;
-use burn::tensor::ops::ConvOptions;
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::Tensor;
 
+pub use crate::metrics::blur::gaussian_blur;
 use crate::metrics::constants::{SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW};
 
 /// The normalised 1D Gaussian window (the 2D window is its outer product).
@@ -19,24 +20,6 @@ pub fn gaussian_window() -> Vec<f32> {
         .collect();
     let s: f64 = g.iter().sum();
     g.iter().map(|v| (v / s) as f32).collect()
-}
-
-/// Blurs every channel of `x` with the Gaussian window, zero padding, same size.
-///
-/// # Shapes
-/// - `x`: [N, C, H, W]
-/// - returns [N, C, H, W]
-pub fn gaussian_blur(x: Tensor<4>) -> Tensor<4> {
-    let [n, c, h, w] = x.dims();
-    let device = x.device();
-    let g = gaussian_window();
-    let r = SSIM_WINDOW / 2;
-    let kx = Tensor::<4>::from_data(TensorData::new(g.clone(), [1, 1, 1, SSIM_WINDOW]), &device);
-    let ky = Tensor::<4>::from_data(TensorData::new(g, [1, 1, SSIM_WINDOW, 1]), &device);
-    let x = x.reshape([n * c, 1, h, w]);
-    let x = conv2d(x, kx, None, ConvOptions::new([1, 1], [0, r], [1, 1], 1));
-    let x = conv2d(x, ky, None, ConvOptions::new([1, 1], [r, 0], [1, 1], 1));
-    x.reshape([n, c, h, w])
 }
 
 /// The SSIM map.
