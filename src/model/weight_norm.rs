@@ -15,7 +15,7 @@
 //! - `dg_o = a_o / n`;
 //! - `dv_i = s_{o(i)} · dw_i - v_i · (Σ_o g_o · a_o) / n³`.
 //!
-//! Thread mapping (CPU): `v` is cut into runs of [`CHUNK`] values, one task each; a run
+//! Thread mapping (CPU): `v` is cut into runs of `CHUNK` values, one task each; a run
 //! walks its channels with a counter, so any `out_dim` (first, middle or last) is one loop.
 //! The norm and the dot products are summed in `f64` per run, then across runs.
 //!
