@@ -690,18 +690,7 @@ fn input_transform(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
         let tr = rows.next().expect("four rows");
         for col in 0..4 {
             let (a, b) = (&d[p * 4 + col][..c], &d[q * 4 + col][..c]);
-            let o = &mut tr[col * c..][..c];
-            if r == 1 {
-                o.iter_mut()
-                    .zip(a)
-                    .zip(b)
-                    .for_each(|((o, a), b)| *o = a + b);
-            } else {
-                o.iter_mut()
-                    .zip(a)
-                    .zip(b)
-                    .for_each(|((o, a), b)| *o = a - b);
-            }
+            sum_or_difference(&mut tr[col * c..][..c], a, b, r == 1);
         }
     }
     // V = t B: the same combination along each row.
@@ -709,19 +698,18 @@ fn input_transform(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
         let col = |k: usize| &tr[k * c..][..c];
         for (k, o) in vr.chunks_exact_mut(c).enumerate() {
             let (p, q) = [(0, 2), (1, 2), (2, 1), (1, 3)][k];
-            let (a, b) = (col(p), col(q));
-            if k == 1 {
-                o.iter_mut()
-                    .zip(a)
-                    .zip(b)
-                    .for_each(|((o, a), b)| *o = a + b);
-            } else {
-                o.iter_mut()
-                    .zip(a)
-                    .zip(b)
-                    .for_each(|((o, a), b)| *o = a - b);
-            }
+            sum_or_difference(o, col(p), col(q), k == 1);
         }
+    }
+}
+
+/// `o = a + b` with `add`, `o = a - b` without, element-wise.
+fn sum_or_difference(o: &mut [f32], a: &[f32], b: &[f32], add: bool) {
+    let pairs = o.iter_mut().zip(a).zip(b);
+    if add {
+        pairs.for_each(|((o, a), b)| *o = a + b);
+    } else {
+        pairs.for_each(|((o, a), b)| *o = a - b);
     }
 }
 

@@ -312,17 +312,10 @@ mod tests {
     use super::*;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().iter::<f32>().collect()
-    }
+    use crate::model::op_check::{check_finite_differences, host, output_and_gradients};
 
     fn max_rel(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        let scale = b.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / scale)
-            .fold(0.0, f32::max)
+        crate::model::op_check::max_rel(a, b, 1e-3)
     }
 
     /// The reference twin: burn's own ops under autodiff.
@@ -347,22 +340,8 @@ mod tests {
         let y = Tensor::<4>::random([n, c, h, w], Distribution::Normal(0.0, 1.0), device);
         let b = Tensor::<D>::random(bias_shape, Distribution::Normal(0.0, 1.0), device);
         let g = Tensor::<4>::random([n, c, h, w], Distribution::Normal(0.0, 1.0), device);
-        let run = |ours: bool| {
-            let (ya, ba) = (y.clone().require_grad(), b.clone().require_grad());
-            let out = if ours {
-                bias_act(ya.clone(), ba.clone(), act)
-            } else {
-                reference(ya.clone(), ba.clone(), act)
-            };
-            let grads = (out.clone() * g.clone()).sum().backward();
-            (
-                host(out),
-                host(ya.grad(&grads).expect("y grad")),
-                host(ba.grad(&grads).expect("bias grad")),
-            )
-        };
-        let (o, dy, db) = run(true);
-        let (o_ref, dy_ref, db_ref) = run(false);
+        let [o, dy, db] = output_and_gradients(&y, &b, &g, |y, b| bias_act(y, b, act));
+        let [o_ref, dy_ref, db_ref] = output_and_gradients(&y, &b, &g, |y, b| reference(y, b, act));
         let what = format!("bias {bias_shape:?}, act {act}");
         assert!(max_rel(&o, &o_ref) < 1e-6, "{what}: forward");
         assert!(max_rel(&dy, &dy_ref) < 1e-6, "{what}: grad y");
@@ -421,24 +400,6 @@ mod tests {
         let grads = (bias_act(y.clone(), b.clone(), true) * g).sum().backward();
         let dy = host(y.grad(&grads).expect("y grad"));
         let db = host(b.grad(&grads).expect("b grad"));
-        let eps = 1e-2f32;
-        for (which, analytic) in [(0, &dy), (1, &db)] {
-            for (i, a) in analytic.iter().enumerate() {
-                let (mut yp, mut bp, mut ym, mut bm) =
-                    (ys.clone(), bs.clone(), ys.clone(), bs.clone());
-                if which == 0 {
-                    yp[i] += eps;
-                    ym[i] -= eps;
-                } else {
-                    bp[i] += eps;
-                    bm[i] -= eps;
-                }
-                let fd = (f(&yp, &bp) - f(&ym, &bm)) / (2.0 * eps as f64);
-                assert!(
-                    (fd - *a as f64).abs() < 1e-4,
-                    "input {which} [{i}]: {fd} vs {a}"
-                );
-            }
-        }
+        check_finite_differences([&ys, &bs], [&dy, &db], f, 1e-2, 1e-4);
     }
 }

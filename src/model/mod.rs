@@ -15,6 +15,8 @@ pub mod decoders;
 pub mod drivable;
 pub mod layers;
 pub mod net;
+#[cfg(test)]
+mod op_check;
 pub mod pluecker;
 pub mod weight_norm;
 

@@ -338,17 +338,10 @@ mod tests {
     use burn::backend::ops::FloatTensorOps;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-        t.into_data().iter::<f32>().collect()
-    }
+    use crate::model::op_check::{check_finite_differences, host, output_and_gradients};
 
     fn max_rel(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        let scale = b.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / scale)
-            .fold(0.0, f32::max)
+        crate::model::op_check::max_rel(a, b, 1e-6)
     }
 
     /// The reference twin: the composition of burn's ops (the layers' formula before this
@@ -365,22 +358,9 @@ mod tests {
         let v = Tensor::<D>::random(shape, Distribution::Normal(0.0, 1.0), device);
         let g = Tensor::<1>::random([shape[out_dim]], Distribution::Uniform(0.5, 2.0), device);
         let dw = Tensor::<D>::random(shape, Distribution::Normal(0.0, 1.0), device);
-        let run = |ours: bool| {
-            let (va, ga) = (v.clone().require_grad(), g.clone().require_grad());
-            let w = if ours {
-                weight_norm(va.clone(), ga.clone(), out_dim)
-            } else {
-                reference(va.clone(), ga.clone(), out_dim)
-            };
-            let grads = (w.clone() * dw.clone()).sum().backward();
-            (
-                host(w),
-                host(va.grad(&grads).expect("v grad")),
-                host(ga.grad(&grads).expect("g grad")),
-            )
-        };
-        let (w, dv, dg) = run(true);
-        let (w_ref, dv_ref, dg_ref) = run(false);
+        let [w, dv, dg] = output_and_gradients(&v, &g, &dw, |v, g| weight_norm(v, g, out_dim));
+        let [w_ref, dv_ref, dg_ref] =
+            output_and_gradients(&v, &g, &dw, |v, g| reference(v, g, out_dim));
         let what = format!("v {shape:?}, out_dim {out_dim}");
         assert!(max_rel(&w, &w_ref) < 1e-5, "{what}: forward");
         assert!(max_rel(&dv, &dv_ref) < 1e-4, "{what}: grad v");
@@ -465,24 +445,6 @@ mod tests {
         let grads = (weight_norm(v.clone(), g.clone(), 1) * dw).sum().backward();
         let dv = host(v.grad(&grads).expect("v grad"));
         let dg = host(g.grad(&grads).expect("g grad"));
-        let eps = 1e-2f32;
-        for (which, analytic) in [(0, &dv), (1, &dg)] {
-            for (i, a) in analytic.iter().enumerate() {
-                let (mut vp, mut gp, mut vm, mut gm) =
-                    (vs.clone(), gs.clone(), vs.clone(), gs.clone());
-                if which == 0 {
-                    vp[i] += eps;
-                    vm[i] -= eps;
-                } else {
-                    gp[i] += eps;
-                    gm[i] -= eps;
-                }
-                let fd = (f(&vp, &gp) - f(&vm, &gm)) / (2.0 * eps as f64);
-                assert!(
-                    (fd - *a as f64).abs() < 1e-3,
-                    "input {which} [{i}]: {fd} vs {a}"
-                );
-            }
-        }
+        check_finite_differences([&vs, &gs], [&dv, &dg], f, 1e-2, 1e-3);
     }
 }

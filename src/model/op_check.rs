@@ -1,0 +1,61 @@
+//! Test support for the layers' fused ops ([`super::bias_act`], [`super::weight_norm`]):
+//! run an op of two inputs under autodiff and read its output and both input gradients,
+//! so a test compares the op with its reference twin in one line per side.
+
+use burn::tensor::Tensor;
+
+/// The values of a tensor, row-major.
+pub fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().iter::<f32>().collect()
+}
+
+/// The largest difference relative to the largest magnitude of `b` (at least `floor`).
+pub fn max_rel(a: &[f32], b: &[f32], floor: f32) -> f32 {
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(floor, |m, v| m.max(v.abs()));
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() / scale)
+        .fold(0.0, f32::max)
+}
+
+/// `op(a, b)`, and the gradients of `sum(op(a, b) · upstream)` with respect to `a` and
+/// `b`, as host values `[output, d a, d b]`.
+pub fn output_and_gradients<const DA: usize, const DB: usize, const DO: usize>(
+    a: &Tensor<DA>,
+    b: &Tensor<DB>,
+    upstream: &Tensor<DO>,
+    op: impl Fn(Tensor<DA>, Tensor<DB>) -> Tensor<DO>,
+) -> [Vec<f32>; 3] {
+    let (a, b) = (a.clone().require_grad(), b.clone().require_grad());
+    let out = op(a.clone(), b.clone());
+    let grads = (out.clone() * upstream.clone()).sum().backward();
+    [
+        host(out),
+        host(a.grad(&grads).expect("gradient of the first input")),
+        host(b.grad(&grads).expect("gradient of the second input")),
+    ]
+}
+
+/// Central finite differences of `f(a, b)` against the analytic gradients `[d a, d b]`,
+/// every entry of both inputs, within `tol` absolute.
+pub fn check_finite_differences(
+    inputs: [&[f32]; 2],
+    analytic: [&[f32]; 2],
+    f: impl Fn(&[f32], &[f32]) -> f64,
+    eps: f32,
+    tol: f64,
+) {
+    for (which, grad) in analytic.iter().enumerate() {
+        for (i, a) in grad.iter().enumerate() {
+            let (mut plus, mut minus) = (inputs.map(<[f32]>::to_vec), inputs.map(<[f32]>::to_vec));
+            plus[which][i] += eps;
+            minus[which][i] -= eps;
+            let fd = (f(&plus[0], &plus[1]) - f(&minus[0], &minus[1])) / (2.0 * eps as f64);
+            assert!(
+                (fd - *a as f64).abs() < tol,
+                "input {which} [{i}]: {fd} vs {a}"
+            );
+        }
+    }
+}
