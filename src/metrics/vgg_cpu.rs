@@ -11,7 +11,7 @@
 //! - a convolution with at least [`WINOGRAD_MIN_CHANNELS`] channels on both sides (all but
 //!   the first) is Winograd's minimal filtering F(2x2, 3x3) (Lavin and Gray, "Fast
 //!   Algorithms for Convolutional Neural Networks", 2016): each 2x2 output tile is
-//!   `Aᵀ [(G g Gᵀ) ⊙ (Bᵀ d Bᵀ)] A` of its 4x4 input tile `d`, so a block of tiles is 16
+//!   `Aᵀ [(G g Gᵀ) ⊙ (Bᵀ d B)] A` of its 4x4 input tile `d`, so a block of tiles is 16
 //!   matrix products `M_ξ[tiles, C_out] = V_ξ[tiles, C_in] · U_ξ[C_in, C_out]`: 16 products
 //!   per 4 pixels instead of 36, 2.25x fewer multiply-adds. The bias and the ReLU are
 //!   applied in the output transform while the tile is in cache;
@@ -27,11 +27,13 @@
 //!   window (row-major scan, strict `>`: PyTorch's and burn's rule), which is recomputed from
 //!   the saved pre-pool map.
 //!
-//! Thread mapping: every convolution splits its pixels into blocks (a multiple of rayon's
-//! thread count; a column matrix at most `COL_BLOCK` floats, a Winograd block's rows of
-//! tiles at most `WINOGRAD_BLOCK` floats of transformed tiles) and runs the blocks on
-//! rayon, single-threaded products each; a convolution with one block runs its products on
-//! all threads instead. Pooling is parallel over output rows.
+//! Thread mapping: a column convolution splits its pixels into blocks (a multiple of
+//! rayon's thread count, each column matrix at most `COL_BLOCK` floats) and runs the blocks
+//! on rayon, one single-threaded product each; with one block, its product runs on all
+//! threads instead. A Winograd convolution does the same with blocks of tile rows
+//! (`WINOGRAD_BLOCK` floats of transformed tiles), except on a map small enough to be one
+//! block (`WINOGRAD_SHARED`): there the transforms are parallel over tile rows and the 16
+//! products over ξ. Pooling is parallel over output rows.
 //!
 //! The reference twin is burn's own `Conv2d` / `max_pool2d` / `relu` stack
 //! ([`crate::metrics::Features`]); `crate::metrics::perceptual`'s tests compare the loss and
@@ -53,9 +55,10 @@ const COL_BLOCK: usize = 1 << 20;
 const WINOGRAD_BLOCK: usize = 1 << 19;
 
 /// Floats of transformed tiles up to which a map is one Winograd block shared by all
-/// threads (16 MiB: VGG16's maps from conv3 on at 138 x 200, from conv4 on at 550 x 802).
-/// Measured per layer on the development machine: for these deep maps the shared block
-/// was 10-60% faster than per-thread blocks, for the larger maps 20-40% slower.
+/// threads (16 MiB: VGG16's maps from conv3 on at 138 x 200; none at 550 x 802).
+/// Measured per layer at 138 x 200 on the development machine (forward and input
+/// gradient): on these deep maps the shared block was 2-60% faster than per-thread blocks,
+/// on the larger maps 13-45% slower.
 const WINOGRAD_SHARED: usize = 1 << 22;
 
 /// Channels (input and output) from which a convolution runs as Winograd F(2x2, 3x3): with
@@ -78,7 +81,7 @@ const WINOGRAD_G: [[f32; 3]; 4] = [
     [0.0, 0.0, 1.0],
 ];
 
-/// One 3x3 convolution (padding 1, stride 1) in the column formulation.
+/// One 3x3 convolution (padding 1, stride 1), in the column or the Winograd formulation.
 #[derive(Debug)]
 struct Layer {
     ci: usize,

@@ -4,11 +4,12 @@
 //! Why: composed from burn's ops, the forward is four passes over `v` (square, sum, the
 //! broadcast product and its scale) and the backward about eight, each with a fresh buffer
 //! (the product's two gradients, the broadcast sum back to a scalar, the square's backward,
-//! the scalar's expansion, the sum of the two parts). The weights are large next to the
-//! decoders' maps at batch 1 (Exp2Code's linear layer alone is `C_cond x 64·C_code`, 3.2 M
-//! values in the `paper` configuration), so these passes took more time than the layers'
-//! products. Here the forward is two passes (the norm, then `w`) and the backward two (the
-//! per-channel dot products, then `dv`).
+//! the scalar's expansion, the sum of the two parts). Some weights are large:
+//! Exp2Code's linear layer alone is `64·C_code x C_cond`
+//! (16,384 x 243 = 4.0 M values in the `paper` configuration). Here the forward is two
+//! passes (the norm, then `w`) and the backward two (the per-channel dot products, then
+//! `dv`). Measured in one session, interleaved (`cargo bench --bench cpu_vs_torch`,
+//! docs/performance.md): the decoders' forward + backward took 10-25% less time with it.
 //!
 //! With `n = ||v||` and `s_o = g_o / n`, for the gradient `dw` of `w`:
 //! - `a_o = Σ_{i in channel o} dw_i · v_i`;
