@@ -39,6 +39,9 @@ use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
 use super::constants::LEAKY_RELU_SLOPE;
+
+// The host passes write LeakyReLU as `max(z, slope·z)`, which needs `0 < slope < 1`.
+const _: () = assert!(LEAKY_RELU_SLOPE > 0.0 && LEAKY_RELU_SLOPE < 1.0);
 use crate::splat::backend::{HostIo, floats};
 
 /// A convolution's output and its bias.
@@ -159,9 +162,13 @@ fn host_forward(
     }
     y.par_chunks_mut(p).enumerate().for_each(|(i, plane)| {
         let ch = i % c;
+        // Branch-free so that the loops vectorise: with `0 < slope < 1`, LeakyReLU is
+        // `max(z, slope·z)`. A branch on the sign mispredicted on about half the values and
+        // made this pass about 4 ns per value (`perf annotate`, 2026-12-04).
+        let s = if act { slope } else { 1.0 };
         let apply = |v: &mut f32, b: f32| {
             let z = *v + b;
-            *v = if act && z < 0.0 { slope * z } else { z };
+            *v = z.max(s * z);
         };
         if untied {
             let bp = &bias[ch * p..(ch + 1) * p];
@@ -185,11 +192,10 @@ fn host_backward(
         grad.par_chunks_mut(p.max(1))
             .zip(out.par_chunks(p.max(1)))
             .for_each(|(g, o)| {
-                g.iter_mut().zip(o).for_each(|(g, o)| {
-                    if *o < 0.0 {
-                        *g *= slope;
-                    }
-                })
+                // A select, not a branch (see `host_forward`).
+                g.iter_mut()
+                    .zip(o)
+                    .for_each(|(g, o)| *g *= if *o < 0.0 { slope } else { 1.0 })
             });
     }
     let grad = &*grad;
@@ -225,7 +231,7 @@ impl<H: HostIo> BiasActBackend for H {
         let (ys, bs) = (y.shape().to_vec(), bias.shape().to_vec());
         let d = dims(&ys, &bs);
         let mut v = H::floats(y);
-        host_forward(&mut v, &H::floats(bias), d, act);
+        host_forward(&mut v, &H::read(bias), d, act);
         floats::<H>(v, &ys, &device)
     }
 
@@ -239,7 +245,7 @@ impl<H: HostIo> BiasActBackend for H {
         let ys = out.shape().to_vec();
         let d = dims(&ys, &bias_shape);
         let mut g = H::floats(grad);
-        let db = host_backward(&H::floats(out), &mut g, d, act);
+        let db = host_backward(&H::read(out), &mut g, d, act);
         OutBias {
             y: floats::<H>(g, &ys, &device),
             bias: floats::<H>(db, &bias_shape, &device),
