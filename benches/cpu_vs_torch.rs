@@ -38,7 +38,8 @@ use texavatars::train::{
     AvatarTraining, LossWeights, Objective, TrainBatch, TrainConfig, optimizer,
 };
 
-/// The allocator the `texavatars` binary uses (see `src/main.rs`).
+/// The allocator the `texavatars` binary uses, with its settings (`src/main.rs`,
+/// `src/alloc.rs`).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -251,6 +252,7 @@ fn wanted(name: &str) -> bool {
 }
 
 fn main() {
+    texavatars::alloc::keep_freed_pages();
     let skip_paper = std::env::var("TEXAVATARS_BENCH_SKIP_PAPER").is_ok_and(|v| v == "1");
     let threads = rayon::current_num_threads();
     println!(

@@ -22,6 +22,7 @@
 //! choice), `fusion` (the custom ops on burn's kernel-fusion backend), [`io`] (npy / npz /
 //! PNG / pickle files) and [`error`] (errors that name the file and field). The GPU kernels are the `texavatars-kernels` crate ([`kernels`]).
 
+pub mod alloc;
 pub mod camera;
 pub mod cli;
 pub mod data;

@@ -10,6 +10,7 @@ use clap::Parser;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
+    texavatars::alloc::keep_freed_pages();
     let cli = texavatars::cli::Cli::parse();
     match texavatars::cli::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
