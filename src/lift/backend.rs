@@ -65,8 +65,8 @@ fn host_lift<H: HostIo>(
         &params.topology,
         params.mode,
         params.frame,
-        &H::floats(local),
-        &H::floats(vertices),
+        &H::read(local),
+        &H::read(vertices),
     );
     floats::<H>(out, &[params.topology.len(), OUT_CHANNELS], &device)
 }
@@ -83,9 +83,9 @@ fn host_lift_backward<H: HostIo>(
         t,
         params.mode,
         params.frame,
-        &H::floats(local),
-        &H::floats(vertices),
-        &H::floats(grad_out),
+        &H::read(local),
+        &H::read(vertices),
+        &H::read(grad_out),
     );
     LiftGradients {
         local: floats::<H>(dl, &[LOCAL_CHANNELS, t.res(), t.res()], &device),

@@ -80,7 +80,7 @@ impl<H: HostIo> PerceptualBackend for H {
     fn vgg_l1(ImagePair { a, b }: ImagePair<Self>, net: CpuVgg) -> FloatTensor<Self> {
         let device = a.device();
         let dims = nhw::<H>(&a);
-        let (loss, _) = net.0.loss(&H::floats(a), &H::floats(b), dims, [false; 2]);
+        let (loss, _) = net.0.loss(&H::read(a), &H::read(b), dims, [false; 2]);
         floats::<H>(vec![loss as f32], &[1], &device)
     }
 }
@@ -122,7 +122,7 @@ impl<B: HostIo + PerceptualBackend, C: CheckpointStrategy> PerceptualBackend for
         let dims = nhw::<B>(&a);
         match VggBackwardOp.prepare::<C>(nodes).compute_bound().stateful() {
             OpsKind::Tracked(prep) => {
-                let (loss, saved) = net.0.loss(&B::floats(a), &B::floats(b), dims, keep);
+                let (loss, saved) = net.0.loss(&B::read(a), &B::read(b), dims, keep);
                 let out = floats::<B>(vec![loss as f32], &[1], &device);
                 prep.finish((Arc::new(saved), net, dims, device), out)
             }

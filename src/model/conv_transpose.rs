@@ -316,7 +316,7 @@ fn host_backward(
 fn host_conv_t<H: HostIo>(ConvTPair { x, weight }: ConvTPair<H>, p: ConvTParams) -> FloatTensor<H> {
     let device = x.device();
     let d = Dims::new(&x.shape().to_vec(), &weight.shape().to_vec(), &p);
-    let out = host_forward(&H::floats(x), &H::floats(weight), d, &p);
+    let out = host_forward(&H::read(x), &H::read(weight), d, &p);
     floats::<H>(out, &[d.n, d.co, d.ho, d.wo], &device)
 }
 
@@ -327,13 +327,7 @@ fn host_conv_t_backward<H: HostIo>(
 ) -> ConvTPair<H> {
     let device = x.device();
     let d = Dims::new(&x.shape().to_vec(), &weight.shape().to_vec(), &p);
-    let (dx, dw) = host_backward(
-        &H::floats(x),
-        &H::floats(weight),
-        &H::floats(grad_out),
-        d,
-        &p,
-    );
+    let (dx, dw) = host_backward(&H::read(x), &H::read(weight), &H::read(grad_out), d, &p);
     ConvTPair {
         x: floats::<H>(dx, &[d.n, d.ci, d.h, d.w], &device),
         weight: floats::<H>(dw, &[d.ci, d.co, d.kh, d.kw], &device),

@@ -245,7 +245,7 @@ impl<H: HostIo> WeightNormBackend for H {
     fn weight_norm(VG { v, g }: VG<Self>, out_dim: usize) -> FloatTensor<Self> {
         let device = v.device();
         let shape = v.shape().to_vec();
-        let w = host_forward(&H::floats(v), &H::floats(g), layout(&shape, out_dim));
+        let w = host_forward(&H::read(v), &H::read(g), layout(&shape, out_dim));
         floats::<H>(w, &shape, &device)
     }
 
@@ -258,12 +258,7 @@ impl<H: HostIo> WeightNormBackend for H {
         let shape = v.shape().to_vec();
         let c = shape[out_dim];
         let mut d = H::floats(grad);
-        let dg = host_backward(
-            &H::floats(v),
-            &H::floats(g),
-            &mut d,
-            layout(&shape, out_dim),
-        );
+        let dg = host_backward(&H::read(v), &H::read(g), &mut d, layout(&shape, out_dim));
         VG {
             v: floats::<H>(d, &shape, &device),
             g: floats::<H>(dg, &[c], &device),

@@ -116,9 +116,10 @@ pub trait SplatBackend: Backend {
 // ---------------------------------------------------------------------------------------------
 // CPU backends: the tile renderer on host memory.
 
-/// Reading a backend's tensors into host vectors, for the CPU renderer.
+/// Reading a backend's tensors into host vectors, for the CPU renderer and the other host
+/// passes (lifting, decoder layers, losses).
 pub trait HostIo: Backend {
-    /// The values of a float tensor, row-major.
+    /// The values of a float tensor, row-major, in a vector of their own (to write in place).
     fn floats(t: FloatTensor<Self>) -> Vec<f32> {
         read_floats::<Self>(t)
     }
@@ -127,9 +128,56 @@ pub trait HostIo: Backend {
     fn ints(t: IntTensor<Self>) -> Vec<u32> {
         read_ints::<Self>(t)
     }
+
+    /// The backend's own buffer of `t` when it holds `t`'s values as contiguous row-major
+    /// f32; `None` (the default) where it does not or cannot lend it.
+    fn contiguous(_t: &FloatTensor<Self>) -> Option<&[f32]> {
+        None
+    }
+
+    /// The values of a float tensor, row-major, to read: the backend's buffer itself where
+    /// [`HostIo::contiguous`] lends it, else a copy ([`HostIo::floats`]).
+    fn read(t: FloatTensor<Self>) -> HostFloats<Self> {
+        if Self::contiguous(&t).is_some() {
+            HostFloats(Lent::Tensor(t))
+        } else {
+            HostFloats(Lent::Copy(Self::floats(t)))
+        }
+    }
 }
 
-impl HostIo for Flex {}
+/// A float tensor's values on the host, read-only ([`HostIo::read`]): the tensor itself when
+/// its backend lends its buffer, a copy otherwise. Dereferences to `[f32]`, row-major.
+pub struct HostFloats<B: HostIo>(Lent<B>);
+
+enum Lent<B: HostIo> {
+    /// A tensor whose [`HostIo::contiguous`] is `Some` (checked by [`HostIo::read`]).
+    Tensor(FloatTensor<B>),
+    Copy(Vec<f32>),
+}
+
+impl<B: HostIo> std::ops::Deref for HostFloats<B> {
+    type Target = [f32];
+
+    fn deref(&self) -> &[f32] {
+        match &self.0 {
+            Lent::Tensor(t) => {
+                B::contiguous(t).expect("HostIo::read checked that the buffer is lent")
+            }
+            Lent::Copy(v) => v,
+        }
+    }
+}
+
+/// flex keeps a tensor's values in one reference-counted buffer: reading through it saves
+/// the copy that `into_data` makes of a shared tensor (every tensor autodiff keeps for a
+/// backward pass is shared). Those copies were most of the `memmove` in a `cpu` training
+/// step's profile (docs/performance.md).
+impl HostIo for Flex {
+    fn contiguous(t: &FloatTensor<Self>) -> Option<&[f32]> {
+        t.as_slice::<f32>()
+    }
+}
 
 /// ndarray's `into_data` copies element by element through a dynamic-rank iterator when the
 /// array is shared (as autodiff inputs are): ~25 ns per value, which dominated the CPU path.
@@ -272,20 +320,20 @@ fn unpack_projections(v: &[f32]) -> Vec<Option<cpu::Projection>> {
         .collect()
 }
 
-struct HostInputs {
-    means: Vec<f32>,
-    cov6: Vec<f32>,
-    colors: Vec<f32>,
-    opacities: Vec<f32>,
+struct HostInputs<H: HostIo> {
+    means: HostFloats<H>,
+    cov6: HostFloats<H>,
+    colors: HostFloats<H>,
+    opacities: HostFloats<H>,
 }
 
-impl HostInputs {
-    fn read<H: HostIo>(i: SplatInputs<H>) -> Self {
+impl<H: HostIo> HostInputs<H> {
+    fn read(i: SplatInputs<H>) -> Self {
         Self {
-            means: H::floats(i.means),
-            cov6: H::floats(i.cov6),
-            colors: H::floats(i.colors),
-            opacities: H::floats(i.opacities),
+            means: H::read(i.means),
+            cov6: H::read(i.cov6),
+            colors: H::read(i.colors),
+            opacities: H::read(i.opacities),
         }
     }
 
@@ -344,14 +392,14 @@ pub fn cpu_backward<H: HostIo>(
     gaussian_from_isect.truncate(m);
     let fwd = cpu::Forward {
         out: H::floats(state.out),
-        projections: unpack_projections(&H::floats(state.projected)),
+        projections: unpack_projections(&H::read(state.projected)),
         bins: cpu::Bins {
             gaussian_from_isect,
             tile_ranges,
         },
         last: H::ints(state.last),
     };
-    let grad_out = H::floats(grad_out);
+    let grad_out = H::read(grad_out);
     let g = cpu::backward(
         &host.scene(),
         &params.camera,
@@ -626,5 +674,34 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             opacities: Self::from_inner(g.opacities),
             screen: Self::from_inner(g.screen),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::backend::ops::FloatTensorOps;
+
+    /// [`HostIo::read`] lends flex's own buffer for a contiguous tensor, also a shared one
+    /// (a clone), and copies a strided one (a transpose) into row-major order; the values
+    /// are [`HostIo::floats`]'s in every case.
+    #[test]
+    fn read_lends_contiguous_flex_buffers_and_copies_strided_ones() {
+        type F = Flex;
+        let v: Vec<f32> = (0..6).map(|i| i as f32 * 0.5 - 1.0).collect();
+        let t = F::float_from_data(TensorData::new(v.clone(), [2, 3]), &Default::default());
+        let shared = t.clone();
+        assert!(F::contiguous(&t).is_some());
+        let lent = F::read(t);
+        assert!(matches!(lent.0, Lent::Tensor(_)));
+        assert_eq!(&*lent, v.as_slice());
+        drop(lent);
+
+        let transposed = F::float_swap_dims(shared, 0, 1);
+        assert!(F::contiguous(&transposed).is_none());
+        let copied = F::read(transposed.clone());
+        assert!(matches!(copied.0, Lent::Copy(_)));
+        assert_eq!(&*copied, [-1.0, 0.5, -0.5, 1.0, 0.0, 1.5].as_slice());
+        assert_eq!(&*copied, F::floats(transposed).as_slice());
     }
 }
