@@ -22,6 +22,7 @@
 //! Seeds: the device is seeded with the config's seed before the networks are built, and the
 //! frame order is a function of the seed and the iteration.
 
+pub mod adam;
 pub mod config;
 pub mod constants;
 pub mod loader;
@@ -40,7 +41,7 @@ use std::time::Instant;
 
 use burn::lr_scheduler::module_lr_scheduler::{ModuleLrScheduler, ModuleLrSchedulerConfig};
 use burn::module::{Module, ParamGroup};
-use burn::optim::{AdamConfig, ModuleOptimizer};
+use burn::optim::ModuleOptimizer;
 use burn::train::checkpoint::{Checkpoint, KeepLastNCheckpoints};
 use burn::train::{Learner, SupervisedTraining};
 
@@ -246,11 +247,12 @@ pub fn lr_scheduler(config: &TrainConfig) -> ModuleLrScheduler {
 
 /// Adam with the config's betas and epsilon.
 pub fn optimizer(config: &TrainConfig) -> ModuleOptimizer {
-    AdamConfig::new()
-        .with_beta_1(config.adam_beta1 as f32)
-        .with_beta_2(config.adam_beta2 as f32)
-        .with_epsilon(config.adam_eps as f32)
-        .init()
+    adam::FusedAdam {
+        beta_1: config.adam_beta1 as f32,
+        beta_2: config.adam_beta2 as f32,
+        epsilon: config.adam_eps as f32,
+    }
+    .init()
 }
 
 /// The training frames of `options.data` and, when `val_frames > 0` and the export has
