@@ -39,10 +39,10 @@ use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
 use super::constants::LEAKY_RELU_SLOPE;
+use crate::splat::backend::{HostIo, floats};
 
 // The host passes write LeakyReLU as `max(z, slope·z)`, which needs `0 < slope < 1`.
 const _: () = assert!(LEAKY_RELU_SLOPE > 0.0 && LEAKY_RELU_SLOPE < 1.0);
-use crate::splat::backend::{HostIo, floats};
 
 /// A convolution's output and its bias.
 ///
