@@ -40,7 +40,7 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvTransposeOptions;
 use rayon::prelude::*;
 
-use crate::gemm::matmul;
+use crate::gemm::{matmul, matmul_uninit};
 use crate::splat::backend::{HostIo, floats};
 
 /// Stride and padding of a transposed convolution (dilation 1, one group, no output
@@ -141,18 +141,20 @@ pub fn conv_transpose2d(x: Tensor<4>, weight: Tensor<4>, p: ConvTParams) -> Tens
 // ---------------------------------------------------------------------------------------------
 // Host implementation.
 
-/// The sizes of one call.
+/// The sizes of one call: the small side (`h x w`, `ci` channels) and the large side
+/// (`ho x wo`, `co` channels) of the index map. [`super::conv2d`] runs the same map the other
+/// way, with its output as the small side and its input as the large one.
 #[derive(Clone, Copy, Debug)]
-struct Dims {
-    n: usize,
-    ci: usize,
-    co: usize,
-    h: usize,
-    w: usize,
-    kh: usize,
-    kw: usize,
-    ho: usize,
-    wo: usize,
+pub(super) struct Dims {
+    pub(super) n: usize,
+    pub(super) ci: usize,
+    pub(super) co: usize,
+    pub(super) h: usize,
+    pub(super) w: usize,
+    pub(super) kh: usize,
+    pub(super) kw: usize,
+    pub(super) ho: usize,
+    pub(super) wo: usize,
 }
 
 impl Dims {
@@ -174,19 +176,25 @@ impl Dims {
     }
 
     /// Input pixels per plane.
-    fn p(&self) -> usize {
+    pub(super) fn p(&self) -> usize {
         self.h * self.w
     }
 
     /// Rows of the column matrix (C_out · k_h · k_w).
-    fn q(&self) -> usize {
+    pub(super) fn q(&self) -> usize {
         self.co * self.kh * self.kw
     }
 }
 
 /// The input index `i` whose output `i·stride + k - pad` is `o`, for every input `i`:
 /// returns the input range `[lo, hi)` that lands inside `0..out` for kernel tap `k`.
-fn valid_inputs(len: usize, out: usize, stride: usize, pad: usize, k: usize) -> (usize, usize) {
+pub(super) fn valid_inputs(
+    len: usize,
+    out: usize,
+    stride: usize,
+    pad: usize,
+    k: usize,
+) -> (usize, usize) {
     // o = i·s + k - pad ∈ [0, out)  ⇔  i·s ≥ pad - k  and  i·s < out + pad - k.
     let lo = pad.saturating_sub(k).div_ceil(stride);
     let hi = if out + pad > k {
@@ -201,30 +209,31 @@ fn valid_inputs(len: usize, out: usize, stride: usize, pad: usize, k: usize) -> 
 fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32> {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
     let mut out = vec![0.0f32; d.n * d.co * plane];
-    let mut col = vec![0.0f32; q * pp];
-    for b in 0..d.n {
-        let xb = &x[b * d.ci * pp..(b + 1) * d.ci * pp];
-        // col [q, P] = Wᵀ [q, C_in] · X [C_in, P]; W is [C_in, q] row-major.
-        matmul(
-            [q, pp, d.ci],
-            &mut col,
-            [pp, 1],
-            false,
-            weight,
-            [1, q],
-            xb,
-            [pp, 1],
-        );
-        let ob = &mut out[b * d.co * plane..(b + 1) * d.co * plane];
-        ob.par_chunks_mut(plane).enumerate().for_each(|(c, o)| {
-            col2im_plane(&col, o, c, d, p);
-        });
-    }
+    with_columns(q * pp, |col| {
+        for b in 0..d.n {
+            let xb = &x[b * d.ci * pp..(b + 1) * d.ci * pp];
+            // col [q, P] = Wᵀ [q, C_in] · X [C_in, P]; W is [C_in, q] row-major.
+            matmul(
+                [q, pp, d.ci],
+                col,
+                [pp, 1],
+                false,
+                weight,
+                [1, q],
+                xb,
+                [pp, 1],
+            );
+            let ob = &mut out[b * d.co * plane..(b + 1) * d.co * plane];
+            ob.par_chunks_mut(plane).enumerate().for_each(|(c, o)| {
+                col2im_plane(col, o, c, d, p);
+            });
+        }
+    });
     out
 }
 
 /// Scatter-adds the column rows of output channel `c` into its plane `o` [H_out, W_out].
-fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &ConvTParams) {
+pub(super) fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &ConvTParams) {
     let pp = d.p();
     let [sy, sx] = p.stride;
     let [py, px] = p.padding;
@@ -232,21 +241,27 @@ fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &ConvTParams) 
         let (iy0, iy1) = valid_inputs(d.h, d.ho, sy, py, ky);
         for kx in 0..d.kw {
             let (ix0, ix1) = valid_inputs(d.w, d.wo, sx, px, kx);
+            if ix0 == ix1 {
+                continue;
+            }
             let row = &col[((c * d.kh + ky) * d.kw + kx) * pp..][..pp];
+            // Output column of input column ix0; the others follow every sx.
+            let ox0 = ix0 * sx + kx - px;
             for iy in iy0..iy1 {
                 let oy = iy * sy + ky - py;
-                let src = &row[iy * d.w..(iy + 1) * d.w];
-                let dst = &mut o[oy * d.wo..(oy + 1) * d.wo];
-                for ix in ix0..ix1 {
-                    dst[ix * sx + kx - px] += src[ix];
-                }
+                let src = &row[iy * d.w + ix0..iy * d.w + ix1];
+                let dst = &mut o[oy * d.wo + ox0..(oy + 1) * d.wo];
+                dst.iter_mut()
+                    .step_by(sx)
+                    .zip(src)
+                    .for_each(|(o, v)| *o += v);
             }
         }
     }
 }
 
 /// Gathers `dcol` [q, P] from one batch item's output gradient `g` [C_out, H_out, W_out].
-fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
+pub(super) fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
     let pp = d.p();
     let plane = d.ho * d.wo;
     let [sy, sx] = p.stride;
@@ -256,13 +271,26 @@ fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
         let gc = &g[c * plane..(c + 1) * plane];
         let (iy0, iy1) = valid_inputs(d.h, d.ho, sy, py, ky);
         let (ix0, ix1) = valid_inputs(d.w, d.wo, sx, px, kx);
-        row.fill(0.0);
+        // Only the entries no tap reaches are zeroed; the rest are written once.
+        row[..iy0 * d.w].fill(0.0);
+        row[iy1 * d.w..].fill(0.0);
+        let ox0 = ix0 * sx + kx - px;
         for iy in iy0..iy1 {
             let oy = iy * sy + ky - py;
-            let src = &gc[oy * d.wo..(oy + 1) * d.wo];
             let dst = &mut row[iy * d.w..(iy + 1) * d.w];
-            for ix in ix0..ix1 {
-                dst[ix] = src[ix * sx + kx - px];
+            dst[..ix0].fill(0.0);
+            dst[ix1..].fill(0.0);
+            if ix0 == ix1 {
+                continue;
+            }
+            let src = &gc[oy * d.wo + ox0..(oy + 1) * d.wo];
+            if sx == 1 {
+                dst[ix0..ix1].copy_from_slice(&src[..ix1 - ix0]);
+            } else {
+                dst[ix0..ix1]
+                    .iter_mut()
+                    .zip(src.iter().step_by(sx))
+                    .for_each(|(d, s)| *d = *s);
             }
         }
     });
@@ -277,40 +305,72 @@ fn host_backward(
     p: &ConvTParams,
 ) -> (Vec<f32>, Vec<f32>) {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
-    let mut dx = vec![0.0f32; d.n * d.ci * pp];
-    let mut dw = vec![0.0f32; d.ci * q];
-    let mut dcol = vec![0.0f32; q * pp];
-    for b in 0..d.n {
-        im2col(
-            &g[b * d.co * plane..(b + 1) * d.co * plane],
-            &mut dcol,
-            d,
-            p,
-        );
-        // dX [C_in, P] = W [C_in, q] · dcol [q, P]
-        matmul(
-            [d.ci, pp, q],
-            &mut dx[b * d.ci * pp..(b + 1) * d.ci * pp],
-            [pp, 1],
-            false,
-            weight,
-            [q, 1],
-            &dcol,
-            [pp, 1],
-        );
-        // dW [C_in, q] += X [C_in, P] · dcolᵀ [P, q]
-        matmul(
-            [d.ci, q, pp],
-            &mut dw,
-            [q, 1],
-            b > 0,
-            &x[b * d.ci * pp..(b + 1) * d.ci * pp],
-            [pp, 1],
-            &dcol,
-            [1, pp],
-        );
+    let mut dx = Vec::with_capacity(d.n * d.ci * pp);
+    let mut dw = Vec::with_capacity(d.ci * q);
+    with_columns(q * pp, |dcol| {
+        for b in 0..d.n {
+            im2col(&g[b * d.co * plane..(b + 1) * d.co * plane], dcol, d, p);
+            // dX [C_in, P] = W [C_in, q] · dcol [q, P]
+            matmul_uninit(
+                [d.ci, pp, q],
+                &mut dx.spare_capacity_mut()[b * d.ci * pp..(b + 1) * d.ci * pp],
+                weight,
+                [q, 1],
+                dcol,
+                [pp, 1],
+            );
+            // dW [C_in, q] (+)= X [C_in, P] · dcolᵀ [P, q]
+            let xb = &x[b * d.ci * pp..(b + 1) * d.ci * pp];
+            if b == 0 {
+                matmul_uninit(
+                    [d.ci, q, pp],
+                    &mut dw.spare_capacity_mut()[..d.ci * q],
+                    xb,
+                    [pp, 1],
+                    dcol,
+                    [1, pp],
+                );
+                // SAFETY: `matmul_uninit` wrote all `C_in·q` values.
+                unsafe { dw.set_len(d.ci * q) };
+            } else {
+                matmul(
+                    [d.ci, q, pp],
+                    &mut dw,
+                    [q, 1],
+                    true,
+                    xb,
+                    [pp, 1],
+                    dcol,
+                    [1, pp],
+                );
+            }
+        }
+    });
+    // SAFETY: `matmul_uninit` wrote the `C_in·P` values of every batch item.
+    unsafe { dx.set_len(d.n * d.ci * pp) };
+    if d.n == 0 {
+        dw.resize(d.ci * q, 0.0);
     }
     (dx, dw)
+}
+
+thread_local! {
+    /// The calling thread's column buffer, kept between calls ([`with_columns`]).
+    static COLUMNS: std::cell::Cell<Vec<f32>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// Runs `f` on a column buffer of `len` values whose contents are unspecified (`f` writes
+/// before it reads), reused across calls on one thread so the column matrices of every layer
+/// and step do not each cost a fresh, zeroed allocation. A nested call gets a buffer of its
+/// own.
+pub(super) fn with_columns<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
+    let mut buf = COLUMNS.take();
+    if buf.len() < len {
+        buf.resize(len, 0.0);
+    }
+    let out = f(&mut buf[..len]);
+    COLUMNS.set(buf);
+    out
 }
 
 fn host_conv_t<H: HostIo>(ConvTPair { x, weight }: ConvTPair<H>, p: ConvTParams) -> FloatTensor<H> {

@@ -23,14 +23,14 @@ use std::marker::PhantomData;
 
 use burn::config::{Config, config_to_json};
 use burn::module::{Module, Param};
-use burn::tensor::module::{conv2d, linear};
-use burn::tensor::ops::ConvOptions;
+use burn::tensor::module::linear;
 use burn::tensor::{Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::bias_act::bias_act;
 use super::constants::LEAKY_RELU_SLOPE;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
+use super::conv2d::{Conv2dParams, conv2d};
 pub use super::weight_norm::weight_norm;
 
 /// LeakyReLU with the networks' slope ([`LEAKY_RELU_SLOPE`] = 0.2).
@@ -255,8 +255,11 @@ impl ConvKind for Plain {
     const OUT_DIM: usize = 0;
 
     fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
-        let options = ConvOptions::new(layer.stride, layer.padding, [1, 1], 1);
-        conv2d(x, layer.effective_weight(), None, options)
+        let p = Conv2dParams {
+            stride: layer.stride,
+            padding: layer.padding,
+        };
+        conv2d(x, layer.effective_weight(), p)
     }
 }
 

@@ -10,6 +10,7 @@
 pub mod avatar;
 pub mod bias_act;
 pub mod constants;
+pub mod conv2d;
 pub mod conv_transpose;
 pub mod decoders;
 pub mod drivable;

@@ -195,10 +195,7 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 
 /// `||v||` in `f64`.
 fn norm(v: &[f32]) -> f64 {
-    v.par_chunks(CHUNK)
-        .map(|r| dot(r, r))
-        .sum::<f64>()
-        .sqrt()
+    v.par_chunks(CHUNK).map(|r| dot(r, r)).sum::<f64>().sqrt()
 }
 
 fn host_forward(v: &[f32], g: &[f32], lay: (usize, usize)) -> Vec<f32> {
