@@ -60,8 +60,7 @@ pub trait BiasActBackend: Backend {
     /// `leaky_relu(y + bias)` (with `act`) or `y + bias` → [N, C, H, W]. Default: burn's
     /// tensor ops.
     fn bias_act(#[extension_type] yb: OutBias<Self>, act: bool) -> FloatTensor<Self> {
-        let z = Self::float_add(yb.y, broadcast_bias::<Self>(yb.bias));
-        if act { leaky::<Self>(z) } else { z }
+        composed_forward::<Self>(yb, act)
     }
 
     /// Backward from the layer's output `out` and its gradient → the gradients of `y` and of
@@ -72,21 +71,39 @@ pub trait BiasActBackend: Backend {
         act: bool,
         bias_shape: Vec<usize>,
     ) -> OutBias<Self> {
-        let dz = if act {
-            let negative = negative_mask::<Self>(out);
-            let scaled = Self::float_mul_scalar(grad.clone(), LEAKY_RELU_SLOPE.into());
-            Self::float_mask_where(grad, negative, scaled)
-        } else {
-            grad
-        };
-        let mut db = Self::float_sum_dim(dz.clone(), 0);
-        if bias_shape.len() == 1 {
-            db = Self::float_sum_dim(Self::float_sum_dim(db, 3), 2);
-        }
-        OutBias {
-            y: dz,
-            bias: Self::float_reshape(db, Shape::from(bias_shape)),
-        }
+        composed_backward::<Self>(out, grad, act, bias_shape)
+    }
+}
+
+/// The forward from burn's tensor ops (the trait's default body, and the epilogue of
+/// [`super::conv_t_bias_act`]'s).
+pub(super) fn composed_forward<B: Backend>(yb: OutBias<B>, act: bool) -> FloatTensor<B> {
+    let z = B::float_add(yb.y, broadcast_bias::<B>(yb.bias));
+    if act { leaky::<B>(z) } else { z }
+}
+
+/// The backward from burn's tensor ops (the trait's default body, and the epilogue of
+/// [`super::conv_t_bias_act`]'s).
+pub(super) fn composed_backward<B: Backend>(
+    out: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    act: bool,
+    bias_shape: Vec<usize>,
+) -> OutBias<B> {
+    let dz = if act {
+        let negative = negative_mask::<B>(out);
+        let scaled = B::float_mul_scalar(grad.clone(), LEAKY_RELU_SLOPE.into());
+        B::float_mask_where(grad, negative, scaled)
+    } else {
+        grad
+    };
+    let mut db = B::float_sum_dim(dz.clone(), 0);
+    if bias_shape.len() == 1 {
+        db = B::float_sum_dim(B::float_sum_dim(db, 3), 2);
+    }
+    OutBias {
+        y: dz,
+        bias: B::float_reshape(db, Shape::from(bias_shape)),
     }
 }
 
@@ -145,46 +162,49 @@ pub fn bias_act<const D: usize>(y: Tensor<4>, bias: Tensor<D>, act: bool) -> Ten
 // ---------------------------------------------------------------------------------------------
 // Host implementation.
 
-/// Sizes: batch, channels, pixels per plane, and whether the bias is untied.
-fn dims(y: &[usize], bias: &[usize]) -> (usize, usize, usize, bool) {
+/// The [`EpilogueDims`] of an output of shape `y` with a bias of shape `bias`.
+pub(super) fn dims(y: &[usize], bias: &[usize]) -> EpilogueDims {
     (y[0], y[1], y[2] * y[3], bias.len() == 3)
 }
 
-fn host_forward(
-    y: &mut [f32],
-    bias: &[f32],
-    (n, c, p, untied): (usize, usize, usize, bool),
-    act: bool,
-) {
-    let slope = LEAKY_RELU_SLOPE as f32;
+/// Sizes: batch, channels, pixels per plane, and whether the bias is untied.
+pub(super) type EpilogueDims = (usize, usize, usize, bool);
+
+/// The epilogue on one output plane of channel `ch`; `bias` is the whole bias, `[C]` or
+/// `[C, H, W]` flattened.
+pub(super) fn epilogue_plane(plane: &mut [f32], bias: &[f32], ch: usize, untied: bool, act: bool) {
+    // Branch-free so that the loops vectorise: with `0 < slope < 1`, LeakyReLU is
+    // `max(z, slope·z)`. A branch on the sign mispredicted on about half the values and
+    // made this pass about 4 ns per value (`perf annotate`, 2026-12-04).
+    let s = if act { LEAKY_RELU_SLOPE as f32 } else { 1.0 };
+    let apply = |v: &mut f32, b: f32| {
+        let z = *v + b;
+        *v = z.max(s * z);
+    };
+    if untied {
+        let p = plane.len();
+        let bp = &bias[ch * p..(ch + 1) * p];
+        plane.iter_mut().zip(bp).for_each(|(v, b)| apply(v, *b));
+    } else {
+        let b = bias[ch];
+        plane.iter_mut().for_each(|v| apply(v, b));
+    }
+}
+
+fn host_forward(y: &mut [f32], bias: &[f32], (n, c, p, untied): EpilogueDims, act: bool) {
     if n == 0 || c == 0 || p == 0 {
         return;
     }
     y.par_chunks_mut(p).enumerate().for_each(|(i, plane)| {
-        let ch = i % c;
-        // Branch-free so that the loops vectorise: with `0 < slope < 1`, LeakyReLU is
-        // `max(z, slope·z)`. A branch on the sign mispredicted on about half the values and
-        // made this pass about 4 ns per value (`perf annotate`, 2026-12-04).
-        let s = if act { slope } else { 1.0 };
-        let apply = |v: &mut f32, b: f32| {
-            let z = *v + b;
-            *v = z.max(s * z);
-        };
-        if untied {
-            let bp = &bias[ch * p..(ch + 1) * p];
-            plane.iter_mut().zip(bp).for_each(|(v, b)| apply(v, *b));
-        } else {
-            let b = bias[ch];
-            plane.iter_mut().for_each(|v| apply(v, b));
-        }
+        epilogue_plane(plane, bias, i % c, untied, act);
     });
 }
 
 /// `grad` becomes `dz` in place; returns the bias gradient.
-fn host_backward(
+pub(super) fn host_backward(
     out: &[f32],
     grad: &mut [f32],
-    (n, c, p, untied): (usize, usize, usize, bool),
+    (n, c, p, untied): EpilogueDims,
     act: bool,
 ) -> Vec<f32> {
     let slope = LEAKY_RELU_SLOPE as f32;

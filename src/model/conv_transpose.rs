@@ -18,10 +18,13 @@
 //! output channels (each task owns one output plane, so no two tasks write one pixel);
 //! `im2col` is parallel over the rows of `dcol`.
 //!
-//! Backends: ndarray runs both passes here on host memory; flex keeps its own (tiled, faster)
-//! forward and runs the backward here; on burn's cubecl backend (wgpu) both passes call
-//! burn's own `conv_transpose2d` and its backward functions. The reference twin is burn's `conv_transpose2d` itself; the
-//! tests compare values and gradients with it and check finite differences.
+//! Backends: flex and ndarray run both passes here on host memory (see [`HostConvT`]); on
+//! burn's cubecl backend (wgpu) both passes call burn's own `conv_transpose2d` and its
+//! backward functions. The reference twin is burn's `conv_transpose2d` itself; the tests
+//! compare values and gradients with it and check finite differences.
+//!
+//! The decoders call this through [`super::conv_t_bias_act`], which adds the bias and the
+//! activation in the same pass; this op alone serves layers without a bias.
 
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
@@ -54,7 +57,7 @@ pub struct ConvTParams {
 }
 
 impl ConvTParams {
-    fn options(&self) -> ConvTransposeOptions<2> {
+    pub(super) fn options(&self) -> ConvTransposeOptions<2> {
         ConvTransposeOptions::new(self.stride, self.padding, [0, 0], [1, 1], 1)
     }
 
@@ -158,7 +161,7 @@ pub(super) struct Dims {
 }
 
 impl Dims {
-    fn new(x: &[usize], weight: &[usize], p: &ConvTParams) -> Self {
+    pub(super) fn new(x: &[usize], weight: &[usize], p: &ConvTParams) -> Self {
         let [n, ci, h, w] = [x[0], x[1], x[2], x[3]];
         let [co, kh, kw] = [weight[1], weight[2], weight[3]];
         let [ho, wo] = p.output_size([h, w], [kh, kw]).unwrap_or([0, 0]);
@@ -207,6 +210,19 @@ pub(super) fn valid_inputs(
 
 /// Forward on host memory: `x` [N, C_in, H, W], `weight` [C_in, C_out, k_h, k_w].
 fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32> {
+    host_forward_then(x, weight, d, p, |_, _| {})
+}
+
+/// [`host_forward`], then `epilogue(channel, plane)` on every output plane in the task that
+/// scattered it, while it is still in cache ([`super::conv_t_bias_act`]'s bias and
+/// activation).
+pub(super) fn host_forward_then(
+    x: &[f32],
+    weight: &[f32],
+    d: Dims,
+    p: &ConvTParams,
+    epilogue: impl Fn(usize, &mut [f32]) + Sync,
+) -> Vec<f32> {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
     let mut out = vec![0.0f32; d.n * d.co * plane];
     with_columns(q * pp, |col| {
@@ -226,6 +242,7 @@ fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32>
             let ob = &mut out[b * d.co * plane..(b + 1) * d.co * plane];
             ob.par_chunks_mut(plane).enumerate().for_each(|(c, o)| {
                 col2im_plane(col, o, c, d, p);
+                epilogue(c, o);
             });
         }
     });
@@ -297,7 +314,7 @@ pub(super) fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
 }
 
 /// Backward on host memory → (dx [N, C_in, H, W], dweight [C_in, C_out, k_h, k_w]).
-fn host_backward(
+pub(super) fn host_backward(
     x: &[f32],
     weight: &[f32],
     g: &[f32],
@@ -407,10 +424,13 @@ impl HostConvT for NdArray {
     const HOST_FORWARD: bool = true;
 }
 
-/// burn-flex's tiled forward is faster than ours (96 ms against 114 ms for the `paper`
-/// decoders), so flex keeps it; the backward is ours.
+/// burn-flex's tiled forward was faster than ours (96 ms against 114 ms for the `paper`
+/// decoders) until `col2im` lost its bounds-checked per-pixel loop; since then ours was
+/// faster in three interleaved `cpu_vs_torch` rounds (the `paper` decoders' forward +
+/// backward 234, 233, 227 ms against 283, 306, 232 ms; docs/performance.md), and the
+/// decoders' fused layer ([`super::conv_t_bias_act`]) is built on it.
 impl HostConvT for Flex {
-    const HOST_FORWARD: bool = false;
+    const HOST_FORWARD: bool = true;
 }
 
 impl<H: HostConvT> ConvTBackend for H {

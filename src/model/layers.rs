@@ -29,6 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use super::bias_act::bias_act;
 use super::constants::LEAKY_RELU_SLOPE;
+use super::conv_t_bias_act::conv_transpose2d_bias_act;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
 use super::conv2d::{Conv2dParams, conv2d};
 pub use super::weight_norm::weight_norm;
@@ -129,17 +130,15 @@ fn init_bias(kind: &Bias, c_out: usize, fan_in: usize, device: &Device) -> Biase
 }
 
 /// Checks that an untied bias [C, H, W] matches `y` [N, C, H, W].
-fn check_untied(y: &Tensor<4>, bias: &Option<Param<Tensor<3>>>, layer: &str) {
-    if let Some(b) = bias {
-        let dims = b.dims();
-        let [_, c, h, w] = y.dims();
-        assert_eq!(
-            dims,
-            [c, h, w],
-            "{layer}: the untied bias is {dims:?} but the output is [N, {c}, {h}, {w}]; the layer \
-             only runs at the resolution it was built for",
-        );
-    }
+fn check_untied(out: [usize; 3], bias: &Param<Tensor<3>>, layer: &str) {
+    let dims = bias.dims();
+    let [c, h, w] = out;
+    assert_eq!(
+        dims,
+        [c, h, w],
+        "{layer}: the untied bias is {dims:?} but the output is [N, {c}, {h}, {w}]; the layer \
+         only runs at the resolution it was built for",
+    );
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -239,6 +238,23 @@ pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
     /// - `x`: [N, C_in, H, W]
     /// - returns [N, C_out, H_out, W_out]
     fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4>;
+
+    /// `[H_out, W_out]` for an input `[H, W]`, or `None` when the layer leaves no output.
+    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]>;
+
+    /// The operation, the bias (`[C_out]` or [C_out, H_out, W_out]) and, with `act`, the
+    /// networks' LeakyReLU. Default: [`Self::apply`], then [`bias_act`].
+    ///
+    /// # Shapes
+    /// As [`Self::apply`].
+    fn apply_bias_act<const D: usize>(
+        x: Tensor<4>,
+        layer: &WnConv<Self>,
+        bias: Tensor<D>,
+        act: bool,
+    ) -> Tensor<4> {
+        bias_act(Self::apply(x, layer), bias, act)
+    }
 }
 
 /// A plain convolution: `H_out = (H + 2 p - k) / s + 1`.
@@ -255,11 +271,21 @@ impl ConvKind for Plain {
     const OUT_DIM: usize = 0;
 
     fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
-        let p = Conv2dParams {
+        conv2d(x, layer.effective_weight(), Self::params(layer))
+    }
+
+    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]> {
+        let [_, _, kh, kw] = layer.v.dims();
+        Self::params(layer).output_size(input, [kh, kw])
+    }
+}
+
+impl Plain {
+    fn params(layer: &WnConv<Self>) -> Conv2dParams {
+        Conv2dParams {
             stride: layer.stride,
             padding: layer.padding,
-        };
-        conv2d(x, layer.effective_weight(), p)
+        }
     }
 }
 
@@ -268,11 +294,31 @@ impl ConvKind for Transposed {
     const OUT_DIM: usize = 1;
 
     fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
-        let p = ConvTParams {
+        conv_transpose2d(x, layer.effective_weight(), Self::params(layer))
+    }
+
+    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]> {
+        let [_, _, kh, kw] = layer.v.dims();
+        Self::params(layer).output_size(input, [kh, kw])
+    }
+
+    /// The fused layer op ([`conv_transpose2d_bias_act`]).
+    fn apply_bias_act<const D: usize>(
+        x: Tensor<4>,
+        layer: &WnConv<Self>,
+        bias: Tensor<D>,
+        act: bool,
+    ) -> Tensor<4> {
+        conv_transpose2d_bias_act(x, layer.effective_weight(), bias, Self::params(layer), act)
+    }
+}
+
+impl Transposed {
+    fn params(layer: &WnConv<Self>) -> ConvTParams {
+        ConvTParams {
             stride: layer.stride,
             padding: layer.padding,
-        };
-        conv_transpose2d(x, layer.effective_weight(), p)
+        }
     }
 }
 
@@ -427,8 +473,9 @@ impl<K: ConvKind> WnConv<K> {
         self.forward_act(x, false)
     }
 
-    /// [`Self::forward`] followed by the networks' LeakyReLU when `act`, the bias and the
-    /// activation as one op ([`bias_act`]).
+    /// [`Self::forward`] followed by the networks' LeakyReLU when `act`: the bias and the
+    /// activation as one op ([`bias_act`]) after a plain convolution, and the whole layer as
+    /// one op ([`conv_transpose2d_bias_act`]) for a transposed one.
     ///
     /// # Shapes
     /// As [`Self::forward`].
@@ -436,13 +483,17 @@ impl<K: ConvKind> WnConv<K> {
     /// # Panics
     /// When an untied bias does not match the output's resolution.
     pub fn forward_act(&self, x: Tensor<4>, act: bool) -> Tensor<4> {
-        let y = K::apply(x, self);
-        check_untied(&y, &self.untied_bias, K::NAME);
         match (&self.bias, &self.untied_bias) {
-            (_, Some(b)) => bias_act(y, b.val(), act),
-            (Some(b), None) => bias_act(y, b.val(), act),
-            (None, None) if act => leaky_relu(y),
-            (None, None) => y,
+            (_, Some(b)) => {
+                let [_, _, h, w] = x.dims();
+                if let Some([ho, wo]) = K::output_size(self, [h, w]) {
+                    check_untied([self.g.dims()[0], ho, wo], b, K::NAME);
+                }
+                K::apply_bias_act(x, self, b.val(), act)
+            }
+            (Some(b), None) => K::apply_bias_act(x, self, b.val(), act),
+            (None, None) if act => leaky_relu(K::apply(x, self)),
+            (None, None) => K::apply(x, self),
         }
     }
 }
