@@ -38,7 +38,7 @@ use burn::backend::{
 use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
-use super::constants::LEAKY_RELU_SLOPE;
+use super::constants::{LEAKY_RELU_SLOPE, planes_per_task};
 use crate::splat::backend::{HostIo, floats};
 
 // The host passes write LeakyReLU as `max(z, slope·z)`, which needs `0 < slope < 1`.
@@ -195,9 +195,12 @@ fn host_forward(y: &mut [f32], bias: &[f32], (n, c, p, untied): EpilogueDims, ac
     if n == 0 || c == 0 || p == 0 {
         return;
     }
-    y.par_chunks_mut(p).enumerate().for_each(|(i, plane)| {
-        epilogue_plane(plane, bias, i % c, untied, act);
-    });
+    y.par_chunks_mut(p)
+        .enumerate()
+        .with_min_len(planes_per_task(p))
+        .for_each(|(i, plane)| {
+            epilogue_plane(plane, bias, i % c, untied, act);
+        });
 }
 
 /// `grad` becomes `dz` in place; returns the bias gradient.
@@ -211,6 +214,7 @@ pub(super) fn host_backward(
     if act {
         grad.par_chunks_mut(p.max(1))
             .zip(out.par_chunks(p.max(1)))
+            .with_min_len(planes_per_task(p))
             .for_each(|(g, o)| {
                 // A select, not a branch (see `host_forward`).
                 g.iter_mut()
@@ -221,12 +225,15 @@ pub(super) fn host_backward(
     let grad = &*grad;
     if untied {
         let mut db = vec![0.0f32; c * p];
-        db.par_chunks_mut(p.max(1)).enumerate().for_each(|(ch, d)| {
-            for b in 0..n {
-                let g = &grad[(b * c + ch) * p..][..p];
-                d.iter_mut().zip(g).for_each(|(d, g)| *d += g);
-            }
-        });
+        db.par_chunks_mut(p.max(1))
+            .enumerate()
+            .with_min_len(planes_per_task(p * n))
+            .for_each(|(ch, d)| {
+                for b in 0..n {
+                    let g = &grad[(b * c + ch) * p..][..p];
+                    d.iter_mut().zip(g).for_each(|(d, g)| *d += g);
+                }
+            });
         db
     } else {
         (0..c)

@@ -92,3 +92,14 @@ pub const PAPER_VIEW: [usize; 2] = [16, 32];
 
 /// The background the avatar is rendered on: the data's ([`crate::data::BACKGROUND`]).
 pub const BACKGROUND: [f32; 3] = crate::data::BACKGROUND;
+
+/// Values a rayon task of the layers' host passes (scatter, gather, bias + activation) covers
+/// at least. With one task per plane, the decoders' first layers (16 x 16 and 32 x 32 planes)
+/// made tasks of a few microseconds, and waking a worker costs about as much: kernel
+/// hand-offs were 15-20% of the `cpu` decoders' profile (2026-12-04).
+pub const MIN_TASK_VALUES: usize = 1 << 14;
+
+/// Planes of `plane` values per rayon task, so a task covers at least [`MIN_TASK_VALUES`].
+pub fn planes_per_task(plane: usize) -> usize {
+    (MIN_TASK_VALUES / plane.max(1)).max(1)
+}

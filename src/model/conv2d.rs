@@ -45,6 +45,7 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvOptions;
 use rayon::prelude::*;
 
+use super::constants::planes_per_task;
 use super::conv_transpose::{ConvTParams, Dims, col2im_plane, im2col, with_columns};
 use crate::gemm::{matmul, matmul_uninit};
 use crate::splat::backend::{HostIo, floats};
@@ -244,6 +245,7 @@ fn host_backward(
             dx[b * d.co * plane..(b + 1) * d.co * plane]
                 .par_chunks_mut(plane)
                 .enumerate()
+                .with_min_len(planes_per_task(plane))
                 .for_each(|(c, o)| col2im_plane(col, o, c, d, p));
         }
     });

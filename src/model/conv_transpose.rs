@@ -43,6 +43,7 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvTransposeOptions;
 use rayon::prelude::*;
 
+use super::constants::planes_per_task;
 use crate::gemm::{matmul, matmul_uninit};
 use crate::splat::backend::{HostIo, floats};
 
@@ -240,10 +241,13 @@ pub(super) fn host_forward_then(
                 [pp, 1],
             );
             let ob = &mut out[b * d.co * plane..(b + 1) * d.co * plane];
-            ob.par_chunks_mut(plane).enumerate().for_each(|(c, o)| {
-                col2im_plane(col, o, c, d, p);
-                epilogue(c, o);
-            });
+            ob.par_chunks_mut(plane)
+                .enumerate()
+                .with_min_len(planes_per_task(plane))
+                .for_each(|(c, o)| {
+                    col2im_plane(col, o, c, d, p);
+                    epilogue(c, o);
+                });
         }
     });
     out
@@ -283,34 +287,37 @@ pub(super) fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
     let plane = d.ho * d.wo;
     let [sy, sx] = p.stride;
     let [py, px] = p.padding;
-    dcol.par_chunks_mut(pp).enumerate().for_each(|(r, row)| {
-        let (c, ky, kx) = (r / (d.kh * d.kw), (r / d.kw) % d.kh, r % d.kw);
-        let gc = &g[c * plane..(c + 1) * plane];
-        let (iy0, iy1) = valid_inputs(d.h, d.ho, sy, py, ky);
-        let (ix0, ix1) = valid_inputs(d.w, d.wo, sx, px, kx);
-        // Only the entries no tap reaches are zeroed; the rest are written once.
-        row[..iy0 * d.w].fill(0.0);
-        row[iy1 * d.w..].fill(0.0);
-        let ox0 = ix0 * sx + kx - px;
-        for iy in iy0..iy1 {
-            let oy = iy * sy + ky - py;
-            let dst = &mut row[iy * d.w..(iy + 1) * d.w];
-            dst[..ix0].fill(0.0);
-            dst[ix1..].fill(0.0);
-            if ix0 == ix1 {
-                continue;
+    dcol.par_chunks_mut(pp)
+        .enumerate()
+        .with_min_len(planes_per_task(pp))
+        .for_each(|(r, row)| {
+            let (c, ky, kx) = (r / (d.kh * d.kw), (r / d.kw) % d.kh, r % d.kw);
+            let gc = &g[c * plane..(c + 1) * plane];
+            let (iy0, iy1) = valid_inputs(d.h, d.ho, sy, py, ky);
+            let (ix0, ix1) = valid_inputs(d.w, d.wo, sx, px, kx);
+            // Only the entries no tap reaches are zeroed; the rest are written once.
+            row[..iy0 * d.w].fill(0.0);
+            row[iy1 * d.w..].fill(0.0);
+            let ox0 = ix0 * sx + kx - px;
+            for iy in iy0..iy1 {
+                let oy = iy * sy + ky - py;
+                let dst = &mut row[iy * d.w..(iy + 1) * d.w];
+                dst[..ix0].fill(0.0);
+                dst[ix1..].fill(0.0);
+                if ix0 == ix1 {
+                    continue;
+                }
+                let src = &gc[oy * d.wo + ox0..(oy + 1) * d.wo];
+                if sx == 1 {
+                    dst[ix0..ix1].copy_from_slice(&src[..ix1 - ix0]);
+                } else {
+                    dst[ix0..ix1]
+                        .iter_mut()
+                        .zip(src.iter().step_by(sx))
+                        .for_each(|(d, s)| *d = *s);
+                }
             }
-            let src = &gc[oy * d.wo + ox0..(oy + 1) * d.wo];
-            if sx == 1 {
-                dst[ix0..ix1].copy_from_slice(&src[..ix1 - ix0]);
-            } else {
-                dst[ix0..ix1]
-                    .iter_mut()
-                    .zip(src.iter().step_by(sx))
-                    .for_each(|(d, s)| *d = *s);
-            }
-        }
-    });
+        });
 }
 
 /// Backward on host memory → (dx [N, C_in, H, W], dweight [C_in, C_out, k_h, k_w]).
