@@ -325,15 +325,20 @@ mod tests {
         ]
     }
 
-    /// The decoders' layer (k4 s2 p1) and two other index maps, with both bias kinds, with
-    /// and without the activation, against the reference twin.
+    /// Kernel, stride, padding, input size, batch.
+    type Case = ([usize; 2], [usize; 2], [usize; 2], [usize; 2], usize);
+
+    /// The decoders' layer (k4 s2 p1) and two other index maps.
+    const CASES: [Case; 3] = [
+        ([4, 4], [2, 2], [1, 1], [5, 6], 2),
+        ([3, 3], [1, 1], [1, 1], [4, 3], 1),
+        ([2, 1], [3, 2], [0, 0], [3, 2], 2),
+    ];
+
+    /// [`CASES`] with both bias kinds, with and without the activation, against the
+    /// reference twin.
     fn check_against_burn(device: Device) {
-        let cases: [([usize; 2], [usize; 2], [usize; 2], [usize; 2], usize); 3] = [
-            ([4, 4], [2, 2], [1, 1], [5, 6], 2),
-            ([3, 3], [1, 1], [1, 1], [4, 3], 1),
-            ([2, 1], [3, 2], [0, 0], [3, 2], 2),
-        ];
-        for (i, &(k, stride, padding, [h, w], n)) in cases.iter().enumerate() {
+        for (i, &(k, stride, padding, [h, w], n)) in CASES.iter().enumerate() {
             let (ci, co) = (3, 2);
             let p = ConvTParams { stride, padding };
             let [ho, wo] = p.output_size([h, w], k).expect("valid case");
