@@ -75,15 +75,15 @@ pub trait BiasActBackend: Backend {
     }
 }
 
-/// The forward from burn's tensor ops (the trait's default body, and the epilogue of
-/// [`super::conv_t_bias_act`]'s).
+/// The forward from burn's tensor ops: the trait's default body, and the bias and
+/// activation of [`super::conv_t_bias_act`]'s default body.
 pub(super) fn composed_forward<B: Backend>(yb: OutBias<B>, act: bool) -> FloatTensor<B> {
     let z = B::float_add(yb.y, broadcast_bias::<B>(yb.bias));
     if act { leaky::<B>(z) } else { z }
 }
 
-/// The backward from burn's tensor ops (the trait's default body, and the epilogue of
-/// [`super::conv_t_bias_act`]'s).
+/// The backward from burn's tensor ops: the trait's default body, and the bias and
+/// activation part of [`super::conv_t_bias_act`]'s default body.
 pub(super) fn composed_backward<B: Backend>(
     out: FloatTensor<B>,
     grad: FloatTensor<B>,
@@ -162,13 +162,13 @@ pub fn bias_act<const D: usize>(y: Tensor<4>, bias: Tensor<D>, act: bool) -> Ten
 // ---------------------------------------------------------------------------------------------
 // Host implementation.
 
+/// Sizes: batch, channels, pixels per plane, and whether the bias is untied.
+pub(super) type EpilogueDims = (usize, usize, usize, bool);
+
 /// The [`EpilogueDims`] of an output of shape `y` with a bias of shape `bias`.
 pub(super) fn dims(y: &[usize], bias: &[usize]) -> EpilogueDims {
     (y[0], y[1], y[2] * y[3], bias.len() == 3)
 }
-
-/// Sizes: batch, channels, pixels per plane, and whether the bias is untied.
-pub(super) type EpilogueDims = (usize, usize, usize, bool);
 
 /// The epilogue on one output plane of channel `ch`; `bias` is the whole bias, `[C]` or
 /// `[C, H, W]` flattened.

@@ -15,7 +15,7 @@
 //! This is [`super::conv_transpose`]'s index map read the other way: a convolution is the
 //! adjoint of the transposed convolution with the same kernel, stride and padding, so the
 //! gather and scatter are that module's `im2col` and `col2im_plane`, with the convolution's
-//! output as the map's small side and its input as the large side. The input's size is
+//! output on the map's input side and its input on the map's output side. The input's size is
 //! given rather than derived, so an input row or column that no output reads (when
 //! `H + 2·padding - k_h` is not a multiple of the stride) gets a zero gradient.
 //!
@@ -160,8 +160,9 @@ pub fn conv2d(x: Tensor<4>, weight: Tensor<4>, p: Conv2dParams) -> Tensor<4> {
 // ---------------------------------------------------------------------------------------------
 // Host implementation.
 
-/// The shared index map's sizes for a convolution of `x` by `weight`: the output is the small
-/// side (`ci` = C_out, `h x w` = H_out x W_out), the input the large side (`co` = C_in).
+/// The shared index map's sizes for a convolution of `x` by `weight`: the convolution's
+/// output takes the map's input side (`ci` = C_out, `h x w` = H_out x W_out), its input the
+/// map's output side (`co` = C_in, `ho x wo` = H x W).
 fn dims(x: &[usize], weight: &[usize], p: &Conv2dParams) -> Dims {
     let [n, ci, h, w] = [x[0], x[1], x[2], x[3]];
     let [co, kh, kw] = [weight[0], weight[2], weight[3]];

@@ -145,9 +145,9 @@ pub fn conv_transpose2d(x: Tensor<4>, weight: Tensor<4>, p: ConvTParams) -> Tens
 // ---------------------------------------------------------------------------------------------
 // Host implementation.
 
-/// The sizes of one call: the small side (`h x w`, `ci` channels) and the large side
-/// (`ho x wo`, `co` channels) of the index map. [`super::conv2d`] runs the same map the other
-/// way, with its output as the small side and its input as the large one.
+/// The sizes of one call: the transposed convolution's input (`ci` x `h` x `w`) and output
+/// (`co` x `ho` x `wo`). [`super::conv2d`] runs the same index map the other way, with its
+/// own output in the input's place and its own input in the output's.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Dims {
     pub(super) n: usize,

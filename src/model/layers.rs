@@ -129,7 +129,8 @@ fn init_bias(kind: &Bias, c_out: usize, fan_in: usize, device: &Device) -> Biase
     }
 }
 
-/// Checks that an untied bias [C, H, W] matches `y` [N, C, H, W].
+/// Checks that an untied bias [C, H, W] matches the layer's output [N, C, H, W] (`out` is
+/// its [C, H, W]).
 fn check_untied(out: [usize; 3], bias: &Param<Tensor<3>>, layer: &str) {
     let dims = bias.dims();
     let [c, h, w] = out;
@@ -281,6 +282,7 @@ impl ConvKind for Plain {
 }
 
 impl Plain {
+    /// The layer's stride and padding, as the op takes them.
     fn params(layer: &WnConv<Self>) -> Conv2dParams {
         Conv2dParams {
             stride: layer.stride,
@@ -314,6 +316,7 @@ impl ConvKind for Transposed {
 }
 
 impl Transposed {
+    /// The layer's stride and padding, as the op takes them.
     fn params(layer: &WnConv<Self>) -> ConvTParams {
         ConvTParams {
             stride: layer.stride,
