@@ -695,6 +695,80 @@ fn conv_transpose_wgpu_matches_host() {
     }
 }
 
+/// The fused 3x3 layer (convolution + bias + LeakyReLU) on wgpu, where it composes burn's
+/// `conv2d`, its backward functions and the element-wise ops (the trait's default bodies),
+/// against the host op on flex: values and the gradients of input, weight and both bias
+/// kinds, at the view encoder's (stride 2) and the appearance decoder's (stride 1) maps.
+#[test]
+fn conv2d_bias_act_wgpu_matches_host() {
+    use texavatars::model::conv_bias_act::conv2d_bias_act;
+    use texavatars::model::conv2d::Conv2dParams;
+    let value = |i: usize, a: usize, m: usize, d: f32| ((i * a % m) as f32 - (m / 2) as f32) / d;
+    for stride in [1usize, 2] {
+        let p = Conv2dParams {
+            stride: [stride, stride],
+            padding: [1, 1],
+        };
+        let [ho, wo] = p.output_size([6, 5], [3, 3]).expect("valid");
+        let run = |device: Device, untied: bool| {
+            let x: Vec<f32> = (0..2 * 3 * 6 * 5).map(|i| value(i, 37, 17, 8.0)).collect();
+            let w: Vec<f32> = (0..2 * 3 * 9).map(|i| value(i, 53, 13, 6.0)).collect();
+            let x =
+                Tensor::<4>::from_data(TensorData::new(x, [2, 3, 6, 5]), &device).require_grad();
+            let w =
+                Tensor::<4>::from_data(TensorData::new(w, [2, 3, 3, 3]), &device).require_grad();
+            let up = Tensor::<4>::from_data(
+                TensorData::new(
+                    (0..2 * 2 * ho * wo).map(|i| (i % 7) as f32 - 3.0).collect(),
+                    [2, 2, ho, wo],
+                ),
+                &device,
+            );
+            let (y, grads, db) = if untied {
+                let b: Vec<f32> = (0..2 * ho * wo).map(|i| value(i, 29, 11, 5.0)).collect();
+                let b =
+                    Tensor::<3>::from_data(TensorData::new(b, [2, ho, wo]), &device).require_grad();
+                let y = conv2d_bias_act(x.clone(), w.clone(), b.clone(), p, true);
+                let grads = (y.clone() * up).sum().backward();
+                let db = host(b.grad(&grads).expect("bias grad"));
+                (y, grads, db)
+            } else {
+                let b = Tensor::<1>::from_data(TensorData::new(vec![0.3f32, -0.4], [2]), &device)
+                    .require_grad();
+                let y = conv2d_bias_act(x.clone(), w.clone(), b.clone(), p, true);
+                let grads = (y.clone() * up).sum().backward();
+                let db = host(b.grad(&grads).expect("bias grad"));
+                (y, grads, db)
+            };
+            [
+                host(y),
+                host(x.grad(&grads).expect("x grad")),
+                host(w.grad(&grads).expect("w grad")),
+                db,
+            ]
+        };
+        for untied in [false, true] {
+            let cpu = run(Device::flex().autodiff(), untied);
+            let gpu = run(
+                Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff(),
+                untied,
+            );
+            for ((name, a), b) in ["y", "dx", "dw", "db"].iter().zip(&cpu).zip(&gpu) {
+                let scale = a.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+                let d = a
+                    .iter()
+                    .zip(b)
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0.0, f32::max);
+                assert!(
+                    d < 1e-4 * scale,
+                    "stride {stride}, untied {untied}, {name}: max difference {d}"
+                );
+            }
+        }
+    }
+}
+
 /// With the `fusion` feature (on by default) burn's cubecl backend is its kernel-fusion
 /// backend, so every wgpu test in this suite runs on `Fusion<CubeBackend>`.
 #[cfg(feature = "fusion")]

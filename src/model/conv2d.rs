@@ -61,12 +61,12 @@ pub struct Conv2dParams {
 }
 
 impl Conv2dParams {
-    fn options(&self) -> ConvOptions<2> {
+    pub(super) fn options(&self) -> ConvOptions<2> {
         ConvOptions::new(self.stride, self.padding, [1, 1], 1)
     }
 
     /// The same stride and padding for the shared index map.
-    fn map(&self) -> ConvTParams {
+    pub(super) fn map(&self) -> ConvTParams {
         ConvTParams {
             stride: self.stride,
             padding: self.padding,
@@ -163,7 +163,7 @@ pub fn conv2d(x: Tensor<4>, weight: Tensor<4>, p: Conv2dParams) -> Tensor<4> {
 /// The shared index map's sizes for a convolution of `x` by `weight`: the convolution's
 /// output takes the map's input side (`ci` = C_out, `h x w` = H_out x W_out), its input the
 /// map's output side (`co` = C_in, `ho x wo` = H x W).
-fn dims(x: &[usize], weight: &[usize], p: &Conv2dParams) -> Dims {
+pub(super) fn dims(x: &[usize], weight: &[usize], p: &Conv2dParams) -> Dims {
     let [n, ci, h, w] = [x[0], x[1], x[2], x[3]];
     let [co, kh, kw] = [weight[0], weight[2], weight[3]];
     let [ho, wo] = p.output_size([h, w], [kh, kw]).unwrap_or([0, 0]);
@@ -184,20 +184,36 @@ fn dims(x: &[usize], weight: &[usize], p: &Conv2dParams) -> Dims {
 /// H_out, W_out]. In the map's names: C_out = `d.ci`, C_in = `d.co`, the output plane
 /// `d.p()`, the input plane `d.ho · d.wo`.
 fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32> {
+    host_forward_then(x, weight, d, p, None::<fn(usize, &mut [f32])>)
+}
+
+/// [`host_forward`], then `epilogue(c, plane)` on every output plane of channel `c` of a
+/// batch item right after that item's product wrote it (parallel over the planes), while
+/// the item's output is still warm in cache.
+pub(super) fn host_forward_then(
+    x: &[f32],
+    weight: &[f32],
+    d: Dims,
+    p: &ConvTParams,
+    epilogue: Option<impl Fn(usize, &mut [f32]) + Sync>,
+) -> Vec<f32> {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
     let mut out = Vec::with_capacity(d.n * d.ci * pp);
     with_columns(q * pp, |col| {
         for b in 0..d.n {
             im2col(&x[b * d.co * plane..(b + 1) * d.co * plane], col, d, p);
             // Y [C_out, P] = W [C_out, q] · col [q, P]
-            matmul_uninit(
-                [d.ci, pp, q],
-                &mut out.spare_capacity_mut()[b * d.ci * pp..(b + 1) * d.ci * pp],
-                weight,
-                [q, 1],
-                col,
-                [pp, 1],
-            );
+            let ob = &mut out.spare_capacity_mut()[b * d.ci * pp..(b + 1) * d.ci * pp];
+            matmul_uninit([d.ci, pp, q], ob, weight, [q, 1], col, [pp, 1]);
+            if let (Some(f), true) = (&epilogue, pp > 0) {
+                // SAFETY: `matmul_uninit` just wrote all `C_out·P` values of `ob`, and
+                // `MaybeUninit<f32>` has `f32`'s layout.
+                let ob = unsafe { &mut *(ob as *mut [std::mem::MaybeUninit<f32>] as *mut [f32]) };
+                ob.par_chunks_mut(pp)
+                    .enumerate()
+                    .with_min_len(planes_per_task(pp))
+                    .for_each(|(c, o)| f(c, o));
+            }
         }
     });
     // SAFETY: `matmul_uninit` wrote the `C_out·P` values of every batch item.
@@ -206,7 +222,7 @@ fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32>
 }
 
 /// Backward on host memory → (dx [N, C_in, H, W], dweight [C_out, C_in, k_h, k_w]).
-fn host_backward(
+pub(super) fn host_backward(
     x: &[f32],
     weight: &[f32],
     g: &[f32],

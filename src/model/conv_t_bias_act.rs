@@ -276,7 +276,9 @@ impl<B: Backend + ConvTBiasActBackend, C: CheckpointStrategy> ConvTBiasActBacken
 #[cfg(test)]
 mod tests {
     use super::super::constants::LEAKY_RELU_SLOPE;
-    use super::super::op_check::{check_finite_differences, host, max_rel};
+    use super::super::op_check::{
+        check_finite_differences, compare_outputs, host, layer_output_and_gradients,
+    };
     use super::*;
     use burn::tensor::{Device, Distribution, TensorData};
 
@@ -301,28 +303,6 @@ mod tests {
         } else {
             z
         }
-    }
-
-    /// Output and the gradients of `x`, the weight and the bias of `sum(f(x, w, b) · up)`.
-    fn run<const D: usize>(
-        [x, w]: [&Tensor<4>; 2],
-        b: &Tensor<D>,
-        up: &Tensor<4>,
-        f: impl Fn(Tensor<4>, Tensor<4>, Tensor<D>) -> Tensor<4>,
-    ) -> [Vec<f32>; 4] {
-        let (x, w, b) = (
-            x.clone().require_grad(),
-            w.clone().require_grad(),
-            b.clone().require_grad(),
-        );
-        let out = f(x.clone(), w.clone(), b.clone());
-        let grads = (out.clone() * up.clone()).sum().backward();
-        [
-            host(out),
-            host(x.grad(&grads).expect("x grad")),
-            host(w.grad(&grads).expect("weight grad")),
-            host(b.grad(&grads).expect("bias grad")),
-        ]
     }
 
     /// Kernel, stride, padding, input size, batch.
@@ -350,33 +330,21 @@ mod tests {
             let untied = Tensor::<3>::random([co, ho, wo], normal, &device);
             let per_channel = Tensor::<1>::random([co], normal, &device);
             for act in [false, true] {
-                let ours = run([&x, &wt], &untied, &up, |x, w, b| {
+                let ours = layer_output_and_gradients([&x, &wt], &untied, &up, |x, w, b| {
                     conv_transpose2d_bias_act(x, w, b, p, act)
                 });
-                let want = run([&x, &wt], &untied, &up, |x, w, b| {
+                let want = layer_output_and_gradients([&x, &wt], &untied, &up, |x, w, b| {
                     reference(x, w, b, p, act)
                 });
-                compare(&ours, &want, &format!("case {i}, untied, act {act}"));
-                let ours = run([&x, &wt], &per_channel, &up, |x, w, b| {
+                compare_outputs(&ours, &want, &format!("case {i}, untied, act {act}"));
+                let ours = layer_output_and_gradients([&x, &wt], &per_channel, &up, |x, w, b| {
                     conv_transpose2d_bias_act(x, w, b, p, act)
                 });
-                let want = run([&x, &wt], &per_channel, &up, |x, w, b| {
+                let want = layer_output_and_gradients([&x, &wt], &per_channel, &up, |x, w, b| {
                     reference(x, w, b, p, act)
                 });
-                compare(&ours, &want, &format!("case {i}, per channel, act {act}"));
+                compare_outputs(&ours, &want, &format!("case {i}, per channel, act {act}"));
             }
-        }
-    }
-
-    fn compare(ours: &[Vec<f32>; 4], want: &[Vec<f32>; 4], what: &str) {
-        for (name, a, b) in ["forward", "grad x", "grad weight", "grad bias"]
-            .iter()
-            .zip(ours)
-            .zip(want)
-            .map(|((n, a), b)| (n, a, b))
-        {
-            let e = max_rel(a, b, 1e-3);
-            assert!(e < 1e-5, "{what}: {name} differs by {e}");
         }
     }
 
@@ -439,7 +407,7 @@ mod tests {
             margin >= 0.05,
             "the inputs put a pre-activation {margin} from the kink"
         );
-        let [_, dx, dw, db] = run(
+        let [_, dx, dw, db] = layer_output_and_gradients(
             [&t4(&xs, [n, ci, h, w]), &t4(&ws, [ci, co, k, k])],
             &t3(&bs),
             &t4(&ups, [n, co, ho, wo]),

@@ -27,8 +27,8 @@ use burn::tensor::module::linear;
 use burn::tensor::{Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 
-use super::bias_act::bias_act;
 use super::constants::LEAKY_RELU_SLOPE;
+use super::conv_bias_act::conv2d_bias_act;
 use super::conv_t_bias_act::conv_transpose2d_bias_act;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
 use super::conv2d::{Conv2dParams, conv2d};
@@ -244,7 +244,7 @@ pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
     fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]>;
 
     /// The operation, the bias (`[C_out]` or [C_out, H_out, W_out]) and, with `act`, the
-    /// networks' LeakyReLU. Default: [`Self::apply`], then [`bias_act`].
+    /// networks' LeakyReLU, as one op.
     ///
     /// # Shapes
     /// As [`Self::apply`].
@@ -253,9 +253,7 @@ pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
         layer: &WnConv<Self>,
         bias: Tensor<D>,
         act: bool,
-    ) -> Tensor<4> {
-        bias_act(Self::apply(x, layer), bias, act)
-    }
+    ) -> Tensor<4>;
 }
 
 /// A plain convolution: `H_out = (H + 2 p - k) / s + 1`.
@@ -278,6 +276,16 @@ impl ConvKind for Plain {
     fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]> {
         let [_, _, kh, kw] = layer.v.dims();
         Self::params(layer).output_size(input, [kh, kw])
+    }
+
+    /// The fused layer op ([`conv2d_bias_act`]).
+    fn apply_bias_act<const D: usize>(
+        x: Tensor<4>,
+        layer: &WnConv<Self>,
+        bias: Tensor<D>,
+        act: bool,
+    ) -> Tensor<4> {
+        conv2d_bias_act(x, layer.effective_weight(), bias, Self::params(layer), act)
     }
 }
 
@@ -476,9 +484,9 @@ impl<K: ConvKind> WnConv<K> {
         self.forward_act(x, false)
     }
 
-    /// [`Self::forward`] followed by the networks' LeakyReLU when `act`: the bias and the
-    /// activation as one op ([`bias_act`]) after a plain convolution, and the whole layer as
-    /// one op ([`conv_transpose2d_bias_act`]) for a transposed one.
+    /// [`Self::forward`] followed by the networks' LeakyReLU when `act`: with a bias, the
+    /// whole layer is one op ([`conv2d_bias_act`] for a plain convolution,
+    /// [`conv_transpose2d_bias_act`] for a transposed one).
     ///
     /// # Shapes
     /// As [`Self::forward`].

@@ -11,6 +11,7 @@ pub mod avatar;
 pub mod bias_act;
 pub mod constants;
 pub mod conv2d;
+pub mod conv_bias_act;
 pub mod conv_t_bias_act;
 pub mod conv_transpose;
 pub mod decoders;

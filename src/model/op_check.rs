@@ -1,6 +1,7 @@
-//! Test support for the layers' fused ops ([`super::bias_act`], [`super::weight_norm`]):
-//! run an op of two inputs under autodiff and read its output and both input gradients,
-//! so a test compares the op with its reference twin in one line per side.
+//! Test support for the layers' fused ops ([`super::bias_act`], [`super::weight_norm`],
+//! the convolutions): run an op of two (or three) inputs under autodiff and read its output
+//! and the input gradients, so a test compares the op with its reference twin in one line
+//! per side.
 
 use burn::tensor::Tensor;
 
@@ -57,5 +58,42 @@ pub fn check_finite_differences(
                 "input {which} [{i}]: {fd} vs {a}"
             );
         }
+    }
+}
+
+/// A layer op of an input, a weight and a bias: its output and the gradients of
+/// `sum(f(x, w, b) · up)` with respect to all three, as host values `[output, d x, d w,
+/// d b]`.
+pub fn layer_output_and_gradients<const D: usize>(
+    [x, w]: [&Tensor<4>; 2],
+    b: &Tensor<D>,
+    up: &Tensor<4>,
+    f: impl Fn(Tensor<4>, Tensor<4>, Tensor<D>) -> Tensor<4>,
+) -> [Vec<f32>; 4] {
+    let (x, w, b) = (
+        x.clone().require_grad(),
+        w.clone().require_grad(),
+        b.clone().require_grad(),
+    );
+    let out = f(x.clone(), w.clone(), b.clone());
+    let grads = (out.clone() * up.clone()).sum().backward();
+    [
+        host(out),
+        host(x.grad(&grads).expect("x grad")),
+        host(w.grad(&grads).expect("weight grad")),
+        host(b.grad(&grads).expect("bias grad")),
+    ]
+}
+
+/// [`layer_output_and_gradients`] of an op against its reference twin: every one of the
+/// four within 1e-5 of the reference's largest magnitude (at least 1e-3).
+pub fn compare_outputs(ours: &[Vec<f32>; 4], want: &[Vec<f32>; 4], what: &str) {
+    for ((name, a), b) in ["forward", "grad x", "grad weight", "grad bias"]
+        .iter()
+        .zip(ours)
+        .zip(want)
+    {
+        let e = max_rel(a, b, 1e-3);
+        assert!(e < 1e-5, "{what}: {name} differs by {e}");
     }
 }
