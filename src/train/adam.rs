@@ -38,7 +38,7 @@ use burn::optim::{AdamState, AdaptiveMomentumState, LearningRate, ModuleOptimize
 use burn::tensor::{Device, Tensor};
 use rayon::prelude::*;
 
-use crate::splat::backend::{HostIo, floats};
+use crate::splat::backend::HostIo;
 
 /// Values per task (64 K floats, 256 KiB per tensor).
 const CHUNK: usize = 1 << 16;
@@ -133,14 +133,19 @@ impl<H: HostIo> AdamBackend for H {
         AdamTensors { param, grad, m, v }: AdamTensors<Self>,
         s: AdamScalars,
     ) -> AdamUpdated<Self> {
-        let device = param.device();
-        let shape = param.shape().to_vec();
-        let (mut p, mut mv, mut vv) = (H::floats(param), H::floats(m), H::floats(v));
-        host_step(&mut p, &H::read(grad), &mut mv, &mut vv, s);
+        // The three state tensors are rewritten where they lie when the backend lets us
+        // (`HostIo::in_place`); nesting the closures keeps all three borrowed at once.
+        let g = H::read(grad);
+        let (mut m_out, mut v_out) = (None, None);
+        let param = H::in_place(param, |p| {
+            m_out = Some(H::in_place(m, |mv| {
+                v_out = Some(H::in_place(v, |vv| host_step(p, &g, mv, vv, s)));
+            }));
+        });
         AdamUpdated {
-            param: floats::<H>(p, &shape, &device),
-            m: floats::<H>(mv, &shape, &device),
-            v: floats::<H>(vv, &shape, &device),
+            param,
+            m: m_out.expect("the closures ran"),
+            v: v_out.expect("the closures ran"),
         }
     }
 }
