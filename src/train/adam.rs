@@ -31,9 +31,7 @@
 
 use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{
-    AutodiffBackend, Backend, Cube, ExtensionType, TensorMetadata, backend_extension,
-};
+use burn::backend::{AutodiffBackend, Backend, Cube, ExtensionType, backend_extension};
 use burn::optim::{AdamState, AdaptiveMomentumState, LearningRate, ModuleOptimizer, Optimizer};
 use burn::tensor::{Device, Tensor};
 use rayon::prelude::*;
