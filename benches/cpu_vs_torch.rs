@@ -253,6 +253,11 @@ fn wanted(name: &str) -> bool {
 
 fn main() {
     texavatars::alloc::keep_freed_pages();
+    // As the `texavatars` binary does (src/main.rs, src/threads.rs).
+    texavatars::threads::on_pool(run);
+}
+
+fn run() {
     let skip_paper = std::env::var("TEXAVATARS_BENCH_SKIP_PAPER").is_ok_and(|v| v == "1");
     let threads = rayon::current_num_threads();
     println!(

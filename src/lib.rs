@@ -18,8 +18,8 @@
 //!    [`view`] (driving an avatar live in a web browser) and [`demo`] (the whole pipeline
 //!    as one command).
 //!
-//! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`device`] (backend
-//! choice), `fusion` (the custom ops on burn's kernel-fusion backend), [`io`] (npy / npz /
+//! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`threads`] (commands
+//! run on rayon's pool), [`device`] (backend choice), `fusion` (the custom ops on burn's kernel-fusion backend), [`io`] (npy / npz /
 //! PNG / pickle files) and [`error`] (errors that name the file and field). The GPU kernels are the `texavatars-kernels` crate ([`kernels`]).
 
 pub mod alloc;
@@ -47,6 +47,7 @@ pub mod splat;
 pub mod study;
 pub mod synth;
 pub mod texel;
+pub mod threads;
 pub mod train;
 pub mod view;
 

@@ -1,0 +1,61 @@
+//! Where the work runs: on a thread of rayon's pool rather than on the process's main thread.
+//!
+//! Every parallel loop of a CPU step (burn-flex's element-wise ops, gemm's products, this
+//! crate's host passes) is a rayon job. Called from a thread outside the pool, rayon takes its
+//! cold path (`Registry::in_worker_cold` in rayon-core): it injects the job into the pool,
+//! wakes the workers, and puts the caller to sleep on a latch until the job is done, so each
+//! loop costs a futex wake-up of the workers and a sleep and wake-up of the caller. A `cpu`
+//! decoder step runs a few hundred such loops; in a `perf` profile of
+//! `cargo bench --bench cpu_vs_torch` (decoders, `cpu`) on 2026-12-05, the wake-ups
+//! (`try_to_wake_up` under `Sleep::wake_specific_thread`, `finish_task_switch`) took about a
+//! fifth of the time. Called from one of the pool's own threads, a loop pushes its halves
+//! onto that thread's queue and starts on them at once; only an idle worker needs waking, and
+//! the caller never sleeps. Measured the same day, interleaved: the `cpu` decoders'
+//! forward + backward went from 19.5 and 15.0 ms to 13.1 and 13.7 ms (docs/performance.md).
+//!
+//! [`on_pool`] therefore runs a whole command on a pool thread. The pool is rayon's global
+//! one (its size follows `RAYON_NUM_THREADS`, as before), built here with the main thread's
+//! stack size so that deep call chains behave as they did on the main thread.
+
+/// The stack of each pool thread: the size Rust gives the main thread on Linux (8 MiB)
+/// rather than the 2 MiB of other threads, since [`on_pool`] moves the whole command there.
+const STACK_BYTES: usize = 8 << 20;
+
+/// Runs `f` on a thread of rayon's global pool and returns its result; the calling thread
+/// waits. On a pool thread already (a nested call), `f` runs where it is.
+///
+/// The first call builds the global pool with an 8 MiB stack per thread; if something
+/// built it before, that pool is used as it is.
+pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    // Fails only when the global pool already exists, which is fine (see the docs).
+    let _ = rayon::ThreadPoolBuilder::new()
+        .stack_size(STACK_BYTES)
+        .build_global();
+    rayon::scope(|_| f())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `f` runs on a pool thread, returns its value, and a nested call stays on that thread.
+    #[test]
+    fn runs_on_a_pool_thread_and_nests_in_place() {
+        assert!(
+            rayon::current_thread_index().is_none(),
+            "tests run outside the pool"
+        );
+        let (outer, inner, sum) = on_pool(|| {
+            let outer = std::thread::current().id();
+            let inner = on_pool(|| std::thread::current().id());
+            let sum: u64 = {
+                use rayon::prelude::*;
+                (0..1000u64).into_par_iter().sum()
+            };
+            ((outer, rayon::current_thread_index().is_some()), inner, sum)
+        });
+        assert!(outer.1, "on_pool ran its closure outside the pool");
+        assert_eq!(outer.0, inner, "a nested on_pool moved to another thread");
+        assert_eq!(sum, 499_500);
+    }
+}
