@@ -12,9 +12,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> ExitCode {
     texavatars::alloc::keep_freed_pages();
     let cli = texavatars::cli::Cli::parse();
-    // On a pool thread, each parallel loop starts without a sleep and wake-up of this thread
-    // (src/threads.rs).
-    match texavatars::threads::on_pool(|| texavatars::cli::run(cli)) {
+    match texavatars::cli::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");

@@ -13,9 +13,14 @@
 //! the caller never sleeps. Measured the same day, interleaved: the `cpu` decoders'
 //! forward + backward went from 19.5 and 15.0 ms to 13.1 and 13.7 ms (docs/performance.md).
 //!
-//! [`on_pool`] therefore runs a whole command on a pool thread. The pool is rayon's global
-//! one (its size follows `RAYON_NUM_THREADS`, as before), built here with the main thread's
-//! stack size so that deep call chains behave as they did on the main thread.
+//! [`on_pool`] therefore runs a whole command on a pool thread (`cli::run`, every command but
+//! `view`, whose calling thread waits on its server for the whole session and would hold a
+//! worker away from the renders). The pool is rayon's global one (its size follows
+//! `RAYON_NUM_THREADS`, as before), built here with the main thread's stack size so that deep
+//! call chains behave as they did on the main thread.
+//!
+//! Code that waits on another thread must not run inside [`on_pool`] if that thread's work
+//! needs the pool: the waiting worker is not free for it, and with one worker nothing is.
 
 /// The stack of each pool thread: the size Rust gives the main thread on Linux (8 MiB)
 /// rather than the 2 MiB of other threads, since [`on_pool`] moves the whole command there.

@@ -83,7 +83,16 @@ pub enum Command {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     crate::limits::set_max_memory(cli.max_memory);
     crate::limits::budget()?;
-    match cli.command {
+    let command = match cli.command {
+        // The viewer keeps this thread waiting for its server for the whole session; on a
+        // pool thread that would take a worker from its render thread's parallel loops (and
+        // with one worker, stall them), so it stays off the pool.
+        Command::View(a) => return view::run(a),
+        c => c,
+    };
+    // Every other command runs on a pool thread, where each parallel loop starts without a
+    // sleep and wake-up of the calling thread (src/threads.rs).
+    crate::threads::on_pool(|| match command {
         Command::Bench(c) => bench::run(c),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),
@@ -98,5 +107,5 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Uv(c) => uv::run(c),
         Command::View(a) => view::run(a),
         Command::Weights(c) => weights::run(c),
-    }
+    })
 }
