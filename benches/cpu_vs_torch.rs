@@ -253,7 +253,7 @@ fn wanted(name: &str) -> bool {
 
 fn main() {
     texavatars::alloc::keep_freed_pages();
-    // As the `texavatars` binary does (src/main.rs, src/threads.rs).
+    // As the `texavatars` binary does (`cli::run`, src/threads.rs).
     texavatars::threads::on_pool(run);
 }
 

@@ -19,8 +19,10 @@
 //!    as one command).
 //!
 //! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`threads`] (commands
-//! run on rayon's pool), [`device`] (backend choice), `fusion` (the custom ops on burn's kernel-fusion backend), [`io`] (npy / npz /
-//! PNG / pickle files) and [`error`] (errors that name the file and field). The GPU kernels are the `texavatars-kernels` crate ([`kernels`]).
+//! run on rayon's pool), [`device`] (backend choice), `fusion` (the custom ops on burn's
+//! kernel-fusion backend), [`io`] (npy / npz / PNG / pickle files) and [`error`] (errors
+//! that name the file and field). The GPU kernels are the `texavatars-kernels` crate
+//! ([`kernels`]).
 
 pub mod alloc;
 pub mod camera;
