@@ -190,6 +190,11 @@ fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32>
 /// [`host_forward`], then `epilogue(c, plane)` on every output plane of channel `c` of a
 /// batch item right after that item's product wrote it (parallel over the planes), while
 /// the item's output is still warm in cache.
+///
+/// The epilogue is an `Option`, unlike `conv_transpose::host_forward_then`'s closure: here
+/// it is a parallel pass of its own after the product, which `None` skips, while the
+/// transposed convolution runs its epilogue inside the task that builds each plane, where an
+/// empty closure costs nothing.
 pub(super) fn host_forward_then(
     x: &[f32],
     weight: &[f32],
