@@ -15,7 +15,9 @@
 //! (default 10, after 2 warm-up runs); `TEXAVATARS_BENCH_SKIP_PAPER=1` leaves out the
 //! `paper` decoders and the 550 x 802 loss. Without `python3 -c "import torch"` the PyTorch
 //! column says so and the burn side still runs. `TEXAVATARS_BENCH_ROWS` (a comma-separated
-//! subset of `decoders`, `perceptual`, `step`, `step_vgg`) runs only those groups, e.g. under `perf`.
+//! subset of `decoders`, `perceptual`, `perceptual_before`, `step`, `step_vgg`) runs only
+//! those groups, e.g. under `perf`; `perceptual_before` (burn's generic ops) runs only with
+//! `perceptual`.
 
 #![allow(deprecated)]
 
@@ -294,12 +296,14 @@ fn run() {
         let torch = torch_ms("perceptual_torch.py", &["--size", &size]);
         let ours = perceptual_ms(&vgg, [h, w], false);
         rows.push((format!("VGG perceptual loss {w}x{h}"), ours, torch.clone()));
-        let before = perceptual_ms(&vgg, [h, w], true);
-        rows.push((
-            format!("VGG perceptual loss {w}x{h}, burn ops (before)"),
-            before,
-            torch,
-        ));
+        if wanted("perceptual_before") {
+            let before = perceptual_ms(&vgg, [h, w], true);
+            rows.push((
+                format!("VGG perceptual loss {w}x{h}, burn ops (before)"),
+                before,
+                torch,
+            ));
+        }
     }
     if wanted("step") {
         eprintln!("training steps ...");

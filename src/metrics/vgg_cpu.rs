@@ -18,14 +18,22 @@
 //! - the first convolution (3 input channels) keeps the column formulation: one product
 //!   per block of pixels, `Y[block, C_out] = col[block, 9·C_in] · W[9·C_in, C_out]`;
 //! - the input gradient of a 3x3 convolution (padding 1) is itself a 3x3 convolution of the
-//!   masked output gradient with the kernel rotated by 180° and its channel axes swapped
-//!   (`w_back`), so the backward runs the same routine; for Winograd, rotating `g` by 180°
-//!   swaps rows 0 and 3 of `G` (`G J = P G`), so the backward's `U` is the forward's with
-//!   indices 0 and 3 of both tile axes swapped and the channel axes transposed: the same
-//!   16 matrices read with other strides, no second copy;
+//!   masked output gradient with the kernel rotated by 180° and its channel axes swapped,
+//!   so the backward runs the same routine; for Winograd, rotating `g` by 180° swaps rows 0
+//!   and 3 of `G` (`G J = P G`), so the backward's `U` is the forward's with indices 0 and 3
+//!   of both tile axes swapped and the channel axes transposed. It is stored as a second,
+//!   contiguous copy (`u_back`): read in place with transposed strides, every product
+//!   packed it element by element (7% of the loss's time at 138 x 200);
+//! - the first convolution's input gradient (3 output channels) is the product of the
+//!   output gradient with the transposed weights, then a sum over the nine taps
+//!   (`conv3x3_input_gradient`);
 //! - a 2x2 max-pool's backward sends each output's gradient to the first maximum of its
 //!   window (row-major scan, strict `>`: PyTorch's and burn's rule), which is recomputed from
-//!   the saved pre-pool map.
+//!   the saved pre-pool map;
+//! - the backward passes over each map once: the ReLU's mask is applied in the Winograd
+//!   output transform of the input gradient (`Epilogue::ReluMask`), or, where a pool lies
+//!   between, in the pool's backward together with the tap's direct gradient
+//!   (`pool_relu_backward`); the loss's sum and the taps' gradients are one pass.
 //!
 //! Thread mapping: a column convolution splits its pixels into blocks (a multiple of
 //! rayon's thread count, each column matrix at most `COL_BLOCK` floats) and runs the blocks
@@ -38,6 +46,8 @@
 //! The reference twin is burn's own `Conv2d` / `max_pool2d` / `relu` stack
 //! ([`crate::metrics::Features`]); `crate::metrics::perceptual`'s tests compare the loss and
 //! its image gradient with it on both CPU backends.
+
+use std::mem::MaybeUninit;
 
 use rayon::prelude::*;
 
@@ -91,14 +101,15 @@ struct Layer {
     /// Whether this convolution's ReLU output is one of the five taps.
     tap: bool,
     /// Forward weights `[9·C_in, C_out]`, rows ordered (ky, kx, c_in); empty for a
-    /// Winograd layer.
+    /// Winograd layer. The input gradient reads them transposed
+    /// ([`conv3x3_input_gradient`]).
     w: Vec<f32>,
-    /// Input-gradient weights `[9·C_out, C_in]`, rows ordered (ky, kx, c_out): the kernel
-    /// rotated by 180°; empty for a Winograd layer.
-    w_back: Vec<f32>,
     /// Winograd-transformed weights `U = G g Gᵀ`, `[16, C_in, C_out]` (ξ = 4·a + b); empty
     /// for a column layer.
     u: Vec<f32>,
+    /// The input gradient's Winograd weights, `[16, C_out, C_in]` ([`backward_weights`]);
+    /// empty for a column layer.
+    u_back: Vec<f32>,
     bias: Vec<f32>,
 }
 
@@ -154,21 +165,22 @@ impl VggCpu {
                 let (ci, co) = (spec.in_channels, spec.out_channels);
                 assert_eq!(w.shape, [co, ci, 3, 3], "VGG16 kernel shape");
                 assert_eq!(b.shape, [co], "VGG16 bias shape");
-                let (fwd, back) = column_weights(&w.data, ci, co);
+                let fwd = column_weights(&w.data, ci, co);
                 let winograd = ci >= WINOGRAD_MIN_CHANNELS && co >= WINOGRAD_MIN_CHANNELS;
-                let (w, w_back, u) = if winograd {
-                    (Vec::new(), Vec::new(), winograd_weights(&fwd, ci, co))
+                let (w, u) = if winograd {
+                    (Vec::new(), winograd_weights(&fwd, ci, co))
                 } else {
-                    (fwd, back, Vec::new())
+                    (fwd, Vec::new())
                 };
+                let u_back = backward_weights(&u, ci, co);
                 Layer {
                     ci,
                     co,
                     pool_before: spec.pool_before.is_some(),
                     tap: spec.tap,
                     w,
-                    w_back,
                     u,
+                    u_back,
                     bias: b.data.clone(),
                 }
             })
@@ -233,24 +245,30 @@ impl VggCpu {
             for (t, &l) in taps.iter().enumerate() {
                 let (x, y) = (&fa.outputs[l].data, &fb.outputs[l].data);
                 counts[t] = n * x.len();
-                sums[t] += x
-                    .par_chunks(1 << 14)
-                    .zip(y.par_chunks(1 << 14))
-                    .map(|(x, y)| {
-                        x.iter()
-                            .zip(y)
-                            .map(|(p, q)| (p - q).abs() as f64)
-                            .sum::<f64>()
-                    })
-                    .sum::<f64>();
-                if keep[0] || keep[1] {
-                    signs.push(
-                        x.par_iter()
-                            .zip(y.par_iter())
-                            .map(|(p, q)| sign(p - q))
-                            .collect::<Vec<f32>>(),
-                    );
-                }
+                // One pass: the sum of |x - y| and, when a gradient is wanted, the tap's
+                // gradient `sign(x - y) / count`.
+                let inv = 1.0 / counts[t].max(1) as f32;
+                let chunk = 1 << 14;
+                sums[t] += if keep[0] || keep[1] {
+                    let mut g = vec![0.0f32; x.len()];
+                    let s = g
+                        .par_chunks_mut(chunk)
+                        .zip(x.par_chunks(chunk).zip(y.par_chunks(chunk)))
+                        .map(|(g, (x, y))| {
+                            for ((g, p), q) in g.iter_mut().zip(x).zip(y) {
+                                *g = sign(p - q) * inv;
+                            }
+                            l1_distance(x, y)
+                        })
+                        .sum::<f64>();
+                    signs.push(g);
+                    s
+                } else {
+                    x.par_chunks(chunk)
+                        .zip(y.par_chunks(chunk))
+                        .map(|(x, y)| l1_distance(x, y))
+                        .sum::<f64>()
+                };
             }
             per_image.push((keep[0].then_some(fa), keep[1].then_some(fb), signs));
         }
@@ -261,11 +279,7 @@ impl VggCpu {
             .sum();
         let mut acts = [Vec::new(), Vec::new()];
         let mut tap_grads = Vec::with_capacity(n);
-        for (fa, fb, mut signs) in per_image {
-            for (s, &c) in signs.iter_mut().zip(&counts) {
-                let inv = 1.0 / c.max(1) as f32;
-                s.par_iter_mut().for_each(|v| *v *= inv);
-            }
+        for (fa, fb, signs) in per_image {
             tap_grads.push(signs);
             acts[0].extend(fa);
             acts[1].extend(fb);
@@ -292,36 +306,48 @@ impl VggCpu {
         let (h, w) = (saved.h, saved.w);
         let plane = h * w;
         let mut out = vec![0.0f32; saved.n * 3 * plane];
+        // Which of the tap gradients each layer's output takes.
+        let mut tap_of = vec![None; self.layers.len()];
+        for (t, l) in (0..self.layers.len())
+            .filter(|&l| self.layers[l].tap)
+            .enumerate()
+        {
+            tap_of[l] = Some(t);
+        }
         for (i, act) in acts.iter().enumerate() {
-            let mut taps = saved.tap_grads[i].iter().rev();
-            let mut dy: Option<Vec<f32>> = None;
+            let tap = |l: usize| tap_of[l].map(|t| (&saved.tap_grads[i][t][..], scale));
+            // `d`: the gradient of layer `l`'s pre-ReLU output, complete (every path from
+            // the loss, the ReLU's mask applied); `None` while no tap lies at or below `l`.
+            let mut d: Option<Vec<f32>> = None;
             for (l, layer) in self.layers.iter().enumerate().rev() {
                 let y = &act.outputs[l];
-                if layer.tap
-                    && let Some(g) = taps.next()
+                if d.is_none()
+                    && let Some(g) = tap(l)
                 {
-                    let d = dy.get_or_insert_with(|| vec![0.0; g.len()]);
-                    d.par_iter_mut()
-                        .zip(g.par_iter())
-                        .for_each(|(d, g)| *d += scale * g);
+                    let mut z = vec![0.0f32; y.data.len()];
+                    add_tap_and_mask(&mut z, g, &y.data);
+                    d = Some(z);
                 }
-                let Some(mut d) = dy.take() else { continue };
-                // Through the ReLU: the gradient passes where the output is positive.
-                d.par_iter_mut().zip(y.data.par_iter()).for_each(|(d, y)| {
-                    if *y <= 0.0 {
-                        *d = 0.0;
-                    }
-                });
-                let dx = layer.input_gradient(&d, [y.h, y.w]);
-                dy = Some(if layer.pool_before {
-                    let pre = &act.outputs[l - 1];
-                    max_pool_backward(&dx, [y.h, y.w], pre, layer.ci)
+                let Some(dl) = d.take() else { continue };
+                if l == 0 {
+                    d = Some(layer.input_gradient(&dl, [y.h, y.w], None));
+                    break;
+                }
+                let pre = &act.outputs[l - 1];
+                d = Some(if layer.pool_before {
+                    let dx = layer.input_gradient(&dl, [y.h, y.w], None);
+                    pool_relu_backward(&dx, [y.h, y.w], pre, layer.ci, tap(l - 1))
                 } else {
+                    // The ReLU of layer `l - 1` in the transform's epilogue.
+                    let mut dx = layer.input_gradient(&dl, [y.h, y.w], Some(&pre.data));
+                    if let Some(g) = tap(l - 1) {
+                        add_tap_and_mask(&mut dx, g, &pre.data);
+                    }
                     dx
                 });
             }
             // Through the normalisation, back to channels first.
-            let d = dy.unwrap_or_else(|| vec![0.0; 3 * plane]);
+            let d = d.unwrap_or_else(|| vec![0.0; 3 * plane]);
             let o = &mut out[i * 3 * plane..][..3 * plane];
             for c in 0..3 {
                 let inv = 1.0 / IMAGENET_STD[c];
@@ -332,6 +358,30 @@ impl VggCpu {
         }
         Some(out)
     }
+}
+
+/// `Σ |x - y|`, in sixteen float32 lanes (so that it runs in SIMD registers) over runs of
+/// 256 values, each run's total added in float64.
+fn l1_distance(x: &[f32], y: &[f32]) -> f64 {
+    const LANES: usize = 16;
+    let mut total = 0.0f64;
+    for (x, y) in x.chunks(256).zip(y.chunks(256)) {
+        let mut lanes = [0.0f32; LANES];
+        let (xv, yv) = (x.chunks_exact(LANES), y.chunks_exact(LANES));
+        let tail: f32 = xv
+            .remainder()
+            .iter()
+            .zip(yv.remainder())
+            .map(|(p, q)| (p - q).abs())
+            .sum();
+        for (x, y) in xv.zip(yv) {
+            for ((l, p), q) in lanes.iter_mut().zip(x).zip(y) {
+                *l += (p - q).abs();
+            }
+        }
+        total += lanes.iter().map(|&l| l as f64).sum::<f64>() + tail as f64;
+    }
+    total
 }
 
 /// `sign(x)` with `sign(0) = 0` (the subgradient burn's `abs` uses).
@@ -431,39 +481,93 @@ impl Layer {
         if self.u.is_empty() {
             conv3x3(x, hw, self.ci, &self.w, self.co, Some(&self.bias))
         } else {
-            conv3x3_winograd(x, hw, [self.ci, self.co], &self.u, false, Some(&self.bias))
+            let epilogue = Epilogue::BiasRelu(&self.bias);
+            conv3x3_winograd(x, hw, [self.ci, self.co], &self.u, epilogue)
         }
     }
 
     /// The gradient of the convolution's input from that of its output (before the ReLU):
-    /// `[H·W, C_out]` → `[H·W, C_in]`.
-    fn input_gradient(&self, dy: &[f32], hw: [usize; 2]) -> Vec<f32> {
+    /// `[H·W, C_out]` → `[H·W, C_in]`; with `relu`, zero where that map (the previous
+    /// layer's ReLU output, `[H·W, C_in]`) is not positive.
+    fn input_gradient(&self, dy: &[f32], hw: [usize; 2], relu: Option<&[f32]>) -> Vec<f32> {
         if self.u.is_empty() {
-            conv3x3(dy, hw, self.co, &self.w_back, self.ci, None)
+            let mut dx = conv3x3_input_gradient(dy, hw, self.co, &self.w, self.ci);
+            if let Some(y) = relu {
+                dx.par_iter_mut().zip(y.par_iter()).for_each(|(d, y)| {
+                    if *y <= 0.0 {
+                        *d = 0.0;
+                    }
+                });
+            }
+            dx
         } else {
-            conv3x3_winograd(dy, hw, [self.co, self.ci], &self.u, true, None)
+            let epilogue = relu.map_or(Epilogue::None, Epilogue::ReluMask);
+            conv3x3_winograd(dy, hw, [self.co, self.ci], &self.u_back, epilogue)
         }
     }
 }
 
-/// PyTorch's OIHW 3x3 kernel → the column weights (forward `[9·C_in, C_out]`, input
-/// gradient `[9·C_out, C_in]` with the kernel rotated by 180°; see [`Layer`]).
-fn column_weights(oihw: &[f32], ci: usize, co: usize) -> (Vec<f32>, Vec<f32>) {
-    let at = |o: usize, i: usize, ky: usize, kx: usize| oihw[((o * ci + i) * 3 + ky) * 3 + kx];
+/// PyTorch's OIHW 3x3 kernel → the column weights `[9·C_in, C_out]` (see [`Layer`]).
+fn column_weights(oihw: &[f32], ci: usize, co: usize) -> Vec<f32> {
     let mut fwd = vec![0.0f32; 9 * ci * co];
-    let mut back = vec![0.0f32; 9 * co * ci];
-    for ky in 0..3 {
-        for kx in 0..3 {
-            let t = ky * 3 + kx;
-            for i in 0..ci {
-                for o in 0..co {
-                    fwd[(t * ci + i) * co + o] = at(o, i, ky, kx);
-                    back[(t * co + o) * ci + i] = at(o, i, 2 - ky, 2 - kx);
-                }
+    for t in 0..9 {
+        for i in 0..ci {
+            for o in 0..co {
+                fwd[(t * ci + i) * co + o] = oihw[(o * ci + i) * 9 + t];
             }
         }
     }
-    (fwd, back)
+    fwd
+}
+
+/// The input gradient of [`conv3x3`] (before its bias and ReLU) with column weights `wm`
+/// `[9·C_in, C_out]`: `dy` `[H·W, C_out]` → `[H·W, C_in]`.
+///
+/// For few input channels (VGG16's first layer, 3): the product
+/// `Z[H·W, 9·C_in] = dy · wmᵀ` holds, for each output pixel, what it sends back through
+/// each kernel tap, and each input pixel then sums the nine entries that reach it:
+/// `dx[q, c] = Σ_(ky,kx) Z[q - (ky - 1, kx - 1), (ky·3 + kx)·C_in + c]`. The column
+/// formulation of the same gradient (a convolution of `dy` with the rotated kernel) would
+/// gather a `[H·W, 9·C_out]` matrix (64 MiB at 138 x 200) for a product only `C_in` wide.
+fn conv3x3_input_gradient(
+    dy: &[f32],
+    [h, w]: [usize; 2],
+    co: usize,
+    wm: &[f32],
+    ci: usize,
+) -> Vec<f32> {
+    let p = h * w;
+    let k = 9 * ci;
+    debug_assert_eq!(dy.len(), p * co);
+    debug_assert_eq!(wm.len(), k * co);
+    let mut dx = vec![0.0f32; p * ci];
+    if p == 0 || ci == 0 {
+        return dx;
+    }
+    let mut z = vec![0.0f32; p * k];
+    // `wm` read as `[C_out, 9·C_in]`: element (o, r) at r·C_out + o.
+    matmul([p, k, co], &mut z, [k, 1], false, dy, [co, 1], wm, [1, co]);
+    dx.par_chunks_mut(w * ci).enumerate().for_each(|(qy, row)| {
+        for ky in 0..3 {
+            // Output row `py = qy + 1 - ky` reads input row `qy` through tap row `ky`.
+            let Some(py) = (qy + 1).checked_sub(ky).filter(|&py| py < h) else {
+                continue;
+            };
+            for kx in 0..3 {
+                let t = (ky * 3 + kx) * ci;
+                for qx in 0..w {
+                    let Some(px) = (qx + 1).checked_sub(kx).filter(|&px| px < w) else {
+                        continue;
+                    };
+                    let src = &z[(py * w + px) * k + t..][..ci];
+                    for (d, s) in row[qx * ci..][..ci].iter_mut().zip(src) {
+                        *d += s;
+                    }
+                }
+            }
+        }
+    });
+    dx
 }
 
 /// `U = G g Gᵀ` for every channel pair, from column weights `[9·C_in, C_out]` (rows
@@ -489,22 +593,35 @@ fn winograd_weights(w: &[f32], ci: usize, co: usize) -> Vec<f32> {
     u
 }
 
-/// The index of `U` that the 180°-rotated kernel's transform takes at tile position `ξ`:
-/// rows 0 and 3 of `G` swap on both axes (see the module docs).
-fn rotated(xi: usize) -> usize {
+/// The Winograd weights of the input gradient, `[16, C_out, C_in]`, from the forward's
+/// `u` `[16, C_in, C_out]`: the 180°-rotated kernel's transform takes, at tile position
+/// `ξ = 4·a + b`, the forward's at `(flip(a), flip(b))` with 0 and 3 swapped (rows 0 and 3
+/// of `G` swap on both axes, see the module docs), its channel axes transposed.
+fn backward_weights(u: &[f32], ci: usize, co: usize) -> Vec<f32> {
     let flip = |a: usize| match a {
         0 => 3,
         3 => 0,
         a => a,
     };
-    flip(xi / 4) * 4 + flip(xi % 4)
+    let mut back = vec![0.0f32; u.len()];
+    if u.is_empty() {
+        return back;
+    }
+    for (xi, b) in back.chunks_exact_mut(co * ci).enumerate() {
+        let src = &u[(flip(xi / 4) * 4 + flip(xi % 4)) * ci * co..][..ci * co];
+        for (o, row) in b.chunks_exact_mut(ci).enumerate() {
+            for (i, v) in row.iter_mut().enumerate() {
+                *v = src[i * co + o];
+            }
+        }
+    }
+    back
 }
 
 /// A 3x3 convolution (padding 1, stride 1) as Winograd F(2x2, 3x3) of a channels-last map
-/// `x` `[H·W, C_in]` with `[c_in, c_out] = channels`; with `bias`, the bias is added and
-/// the ReLU applied. `u` is [`winograd_weights`]' `[16, C_in, C_out]`, or, with `rotate`,
-/// the forward layer's `[16, C_out, C_in]` read as its 180°-rotated, channel-swapped kernel
-/// (the input gradient). Returns `[H·W, C_out]`.
+/// `x` `[H·W, C_in]` with `[c_in, c_out] = channels`, and its [`Epilogue`]. `u` is
+/// [`winograd_weights`]' `[16, C_in, C_out]` (or [`backward_weights`]' for the input
+/// gradient). Returns `[H·W, C_out]`.
 ///
 /// Three steps: the input transform `V = Bᵀ d B` of every 4x4 input tile, 16 products
 /// `M_ξ = V_ξ U_ξ`, and the output transform `Aᵀ M A` (with bias and ReLU) into the 2x2
@@ -521,10 +638,22 @@ fn conv3x3_winograd(
     hw: [usize; 2],
     channels: [usize; 2],
     u: &[f32],
-    rotate: bool,
-    bias: Option<&[f32]>,
+    epilogue: Epilogue,
 ) -> Vec<f32> {
-    winograd_mapped(x, hw, channels, (u, rotate), bias, WINOGRAD_SHARED)
+    winograd_mapped(x, hw, channels, u, epilogue, WINOGRAD_SHARED)
+}
+
+/// What the output transform does to each output pixel after `Aᵀ M A`, while the pixel is
+/// in registers.
+#[derive(Clone, Copy, Debug)]
+enum Epilogue<'a> {
+    /// Nothing.
+    None,
+    /// Adds this bias `[C_out]` and applies the ReLU (a forward convolution).
+    BiasRelu(&'a [f32]),
+    /// Zero where this map `[H·W, C_out]`, a ReLU's output, is not positive: an input
+    /// gradient carried on through the ReLU that produced the convolution's input.
+    ReluMask(&'a [f32]),
 }
 
 /// [`conv3x3_winograd`] with the shared-block limit as an argument (tests take either
@@ -533,16 +662,40 @@ fn winograd_mapped(
     x: &[f32],
     [h, w]: [usize; 2],
     [ci, co]: [usize; 2],
-    (u, rotate): (&[f32], bool),
-    bias: Option<&[f32]>,
+    u: &[f32],
+    epilogue: Epilogue,
     shared: usize,
 ) -> Vec<f32> {
     debug_assert_eq!(x.len(), h * w * ci);
     debug_assert_eq!(u.len(), 16 * ci * co);
-    let mut out = vec![0.0f32; h * w * co];
-    if h == 0 || w == 0 || co == 0 {
-        return out;
+    if let Epilogue::ReluMask(y) = epilogue {
+        assert_eq!(y.len(), h * w * co, "Winograd: ReLU mask shape");
     }
+    if h == 0 || w == 0 || co == 0 {
+        return vec![0.0f32; h * w * co];
+    }
+    // Written, never read, before every pixel is written (each belongs to one tile): no
+    // zeroing pass first.
+    let len = h * w * co;
+    let mut out: Vec<f32> = Vec::with_capacity(len);
+    let dst = &mut out.spare_capacity_mut()[..len];
+    winograd_tiles(x, [h, w], [ci, co], u, epilogue, shared, dst);
+    // SAFETY: `winograd_tiles` wrote all `len` values of `dst` (see `write_tile_row`).
+    unsafe { out.set_len(len) };
+    out
+}
+
+/// [`winograd_mapped`]'s work on its uninitialised output `out` `[H·W, C_out]`, every value
+/// of which it writes.
+fn winograd_tiles(
+    x: &[f32],
+    [h, w]: [usize; 2],
+    [ci, co]: [usize; 2],
+    u: &[f32],
+    epilogue: Epilogue,
+    shared: usize,
+    out: &mut [MaybeUninit<f32>],
+) {
     let (tiles_h, tiles_w) = (h.div_ceil(2), w.div_ceil(2));
     let zero = vec![0.0f32; ci];
     // Transforms one 4x4 input tile (tile row `ty`, column `tx`) into `vt` `[16, C_in]`.
@@ -565,13 +718,7 @@ fn winograd_mapped(
         input_transform(&d, vt, t, ci);
     };
     // `U_ξ` and its strides as the `[C_in, C_out]` right-hand side of product ξ.
-    let weights = |xi: usize| {
-        if rotate {
-            (&u[rotated(xi) * ci * co..][..ci * co], [1, ci])
-        } else {
-            (&u[xi * ci * co..][..ci * co], [co, 1])
-        }
-    };
+    let weights = |xi: usize| (&u[xi * ci * co..][..ci * co], [co, 1]);
     let row_floats = tiles_w * 16 * (ci + co);
     if tiles_h * row_floats <= shared {
         let nt = tiles_h * tiles_w;
@@ -602,21 +749,19 @@ fn winograd_mapped(
                 strides,
             );
         });
-        let products = &m;
+        let products = &m[..];
         out.par_chunks_mut(2 * w * co).enumerate().for_each_init(
-            || (Vec::new(), Vec::new()),
-            |(mt, s): &mut (Vec<f32>, Vec<f32>), (ty, pair)| {
+            Vec::new,
+            |s: &mut Vec<f32>, (ty, pair)| {
                 s.resize(8 * co, 0.0);
-                write_tile_row(pair, [w, co], [mt, s], bias, |tx, mt| {
-                    for xi in 0..16 {
-                        let at = (xi * nt + ty * tiles_w + tx) * co;
-                        mt.extend_from_slice(&products[at..][..co]);
-                    }
+                let at = ty * 2 * w * co;
+                write_tile_row((pair, at), [w, co], s, epilogue, |tx, xi| {
+                    &products[(xi * nt + ty * tiles_w + tx) * co..][..co]
                 });
             },
         );
         WINOGRAD_SCRATCH.set((v, m));
-        return out;
+        return;
     }
     let threads = rayon::current_num_threads().max(1);
     let mut blocks = tiles_h.div_ceil((WINOGRAD_BLOCK / row_floats).max(1));
@@ -625,8 +770,8 @@ fn winograd_mapped(
     out.par_chunks_mut(2 * rows * w * co)
         .enumerate()
         .for_each_init(
-            || (Vec::new(), Vec::new(), Vec::new(), Vec::new()),
-            |(v, m, s, mt): &mut (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>), (bi, o)| {
+            || (Vec::new(), Vec::new(), Vec::new()),
+            |(v, m, s): &mut (Vec<f32>, Vec<f32>, Vec<f32>), (bi, o)| {
                 let nt = (o.len() / (w * co)).div_ceil(2) * tiles_w;
                 v.resize(nt * 16 * ci, 0.0);
                 m.resize(nt * 16 * co, 0.0);
@@ -651,33 +796,56 @@ fn winograd_mapped(
                 }
                 for (r, pair) in o.chunks_mut(2 * w * co).enumerate() {
                     let m = &m[r * tiles_w * 16 * co..];
-                    write_tile_row(pair, [w, co], [mt, s], bias, |tx, mt| {
-                        mt.extend_from_slice(&m[tx * 16 * co..][..16 * co]);
+                    let at = (bi * rows + r) * 2 * w * co;
+                    write_tile_row((pair, at), [w, co], s, epilogue, |tx, xi| {
+                        &m[(tx * 16 + xi) * co..][..co]
                     });
                 }
             },
         );
-    out
 }
 
 /// The output transform of one row of tiles into `pair`, the (one or two) output rows it
-/// covers (`[rows·W, C_out]`); `gather(tx, mt)` puts tile `tx`'s products `[16, C_out]`
-/// into `mt`, and `s` is [`output_transform`]'s scratch.
-fn write_tile_row(
-    pair: &mut [f32],
+/// covers (`[rows·W, C_out]`, starting at float `at` of the output map), every value of
+/// which it writes; `product(tx, ξ)` is tile `tx`'s product `ξ` (`[C_out]`), and `s` is
+/// [`output_transform`]'s scratch.
+fn write_tile_row<'a>(
+    (pair, at): (&mut [MaybeUninit<f32>], usize),
     [w, co]: [usize; 2],
-    [mt, s]: [&mut Vec<f32>; 2],
-    bias: Option<&[f32]>,
-    gather: impl Fn(usize, &mut Vec<f32>),
+    s: &mut [f32],
+    epilogue: Epilogue,
+    product: impl Fn(usize, usize) -> &'a [f32],
 ) {
-    let (top, bottom) = pair.split_at_mut((w * co).min(pair.len()));
+    let split = (w * co).min(pair.len());
+    let (top, bottom) = pair.split_at_mut(split);
     let mut top = top.chunks_exact_mut(co);
     let mut bottom = bottom.chunks_exact_mut(co);
+    // The mask's pixels under `pair`, split alike.
+    let (mut mask_top, mut mask_bottom) = match epilogue {
+        Epilogue::ReluMask(y) => {
+            let (t, b) = y[at..][..split + bottom.len() * co].split_at(split);
+            (Some(t.chunks_exact(co)), Some(b.chunks_exact(co)))
+        }
+        _ => (None, None),
+    };
+    let bias = match epilogue {
+        Epilogue::BiasRelu(b) => Some(b),
+        _ => None,
+    };
+    fn next<'a>(it: &mut Option<std::slice::ChunksExact<'a, f32>>) -> Option<&'a [f32]> {
+        it.as_mut()?.next()
+    }
+    // Every pixel of the pair is one of the four of exactly one tile `tx`.
     for tx in 0..w.div_ceil(2) {
         let y = [top.next(), top.next(), bottom.next(), bottom.next()];
-        mt.clear();
-        gather(tx, mt);
-        output_transform(mt, y, s, co, bias);
+        let mask = [
+            next(&mut mask_top),
+            next(&mut mask_top),
+            next(&mut mask_bottom),
+            next(&mut mask_bottom),
+        ];
+        let m: [&[f32]; 16] = std::array::from_fn(|xi| product(tx, xi));
+        output_transform(&m, (y, mask), s, co, bias);
     }
 }
 
@@ -716,19 +884,23 @@ fn sum_or_difference(o: &mut [f32], a: &[f32], b: &[f32], add: bool) {
     }
 }
 
-/// `Y = Aᵀ M A` of one tile's products `m` `[16, c]` (Lavin and Gray's `Aᵀ` rows
+/// The (up to) four output pixels of one tile, row-major, each `C_out` values; `None` past
+/// the map's edge.
+type TilePixels<'a> = [Option<&'a mut [MaybeUninit<f32>]>; 4];
+
+/// `Y = Aᵀ M A` of one tile's sixteen products `m` (each `c` long; Lavin and Gray's `Aᵀ` rows
 /// (1, 1, 1, 0), (0, 1, -1, -1)) into the 2x2 output pixels `y` (row-major, each `c` long;
-/// `None` past the map's edge), plus `bias` and the ReLU when given. `s` is scratch of
-/// `8·c` floats.
+/// `None` past the map's edge), plus `bias` and the ReLU when given, or zero where the
+/// pixel's `mask` (when given) is not positive. `s` is scratch of `8·c` floats.
 fn output_transform(
-    m: &[f32],
-    y: [Option<&mut [f32]>; 4],
+    m: &[&[f32]; 16],
+    (y, mask): (TilePixels, [Option<&[f32]>; 4]),
     s: &mut [f32],
     c: usize,
     bias: Option<&[f32]>,
 ) {
-    let (m, s) = (&m[..16 * c], &mut s[..8 * c]);
-    let row = |r: usize, k: usize| &m[(r * 4 + k) * c..][..c];
+    let s = &mut s[..8 * c];
+    let row = |r: usize, k: usize| &m[r * 4 + k][..c];
     // s = Aᵀ M (2 x 4 vectors).
     for (k, o) in s.chunks_exact_mut(c).enumerate() {
         let (r, col) = (k / 4, k % 4);
@@ -752,7 +924,7 @@ fn output_transform(
         }
     }
     // Y = s A.
-    for (k, out) in y.into_iter().enumerate() {
+    for (k, (out, mask)) in y.into_iter().zip(mask).enumerate() {
         let Some(out) = out else { continue };
         let (r, col) = (k / 2, k % 2);
         let sv = |j: usize| &s[(r * 4 + j) * c..][..c];
@@ -772,14 +944,28 @@ fn output_transform(
                 .zip(&bias[..c])
                 .for_each(|((((o, a), b), d), z)| {
                     let v = if col == 0 { a + b + d } else { a - b - d };
-                    *o = (v + z).max(0.0);
+                    o.write((v + z).max(0.0));
                 }),
-            None => out
-                .iter_mut()
-                .zip(a)
-                .zip(b)
-                .zip(d)
-                .for_each(|(((o, a), b), d)| *o = a + sgn * (b + d)),
+            None => match mask {
+                Some(mask) => out
+                    .iter_mut()
+                    .zip(a)
+                    .zip(b)
+                    .zip(d)
+                    .zip(&mask[..c])
+                    .for_each(|((((o, a), b), d), y)| {
+                        let v = a + sgn * (b + d);
+                        o.write(if *y > 0.0 { v } else { 0.0 });
+                    }),
+                None => out
+                    .iter_mut()
+                    .zip(a)
+                    .zip(b)
+                    .zip(d)
+                    .for_each(|(((o, a), b), d)| {
+                        o.write(a + sgn * (b + d));
+                    }),
+            },
         }
     }
 }
@@ -810,35 +996,80 @@ fn max_pool(x: &Map, c: usize) -> Map {
     Map { data, h: ho, w: wo }
 }
 
-/// The backward of [`max_pool`]: `dy` `[H_o·W_o, C]` → the gradient of the pre-pool map
-/// `x`, each output's gradient sent to the first maximum of its window.
-fn max_pool_backward(dy: &[f32], [ho, wo]: [usize; 2], x: &Map, c: usize) -> Vec<f32> {
+/// The backward of [`max_pool`] and of the ReLU whose output `x` it pooled: `dy`
+/// `[H_o·W_o, C]` → the gradient of the ReLU's input, `[H·W, C]` as `x`. Each output's
+/// gradient goes to the first maximum of its window; with `tap` (`(g, scale)`), `scale·g`
+/// (`[H·W, C]`, the loss's direct gradient of `x`) is added; then the ReLU's mask (zero
+/// where `x` is not positive) is applied. One pass over the map.
+fn pool_relu_backward(
+    dy: &[f32],
+    [ho, wo]: [usize; 2],
+    x: &Map,
+    c: usize,
+    tap: Option<(&[f32], f32)>,
+) -> Vec<f32> {
     let mut dx = vec![0.0f32; x.h * x.w * c];
-    if ho == 0 || wo == 0 {
+    if dx.is_empty() {
         return dx;
     }
-    // Each task owns the two input rows under one output row.
-    dx.par_chunks_mut(2 * x.w * c)
-        .take(ho)
+    let row = x.w * c;
+    // Each task owns the two input rows under one output row (one row at an odd end).
+    dx.par_chunks_mut(2 * row)
         .enumerate()
         .for_each(|(oy, rows)| {
-            for ox in 0..wo {
-                for ch in 0..c {
-                    let at = |dy: usize, dx: usize| ((2 * oy + dy) * x.w + 2 * ox + dx) * c + ch;
-                    let mut best = (0, 0);
-                    let mut m = x.data[at(0, 0)];
-                    for (dy, dx) in [(0, 1), (1, 0), (1, 1)] {
-                        let v = x.data[at(dy, dx)];
-                        if v > m || v.is_nan() {
-                            m = v;
-                            best = (dy, dx);
+            let base = oy * 2 * row;
+            let xs = &x.data[base..][..rows.len()];
+            if oy < ho {
+                let (r0, r1) = rows.split_at_mut(row);
+                let (x0, x1) = xs.split_at(row);
+                for ox in 0..wo {
+                    let (i, j) = (2 * ox * c, (2 * ox + 1) * c);
+                    let (o00, o01) = r0[i..j + c].split_at_mut(c);
+                    let (o10, o11) = r1[i..j + c].split_at_mut(c);
+                    let g = &dy[(oy * wo + ox) * c..][..c];
+                    let (v00, v01) = (&x0[i..][..c], &x0[j..][..c]);
+                    let (v10, v11) = (&x1[i..][..c], &x1[j..][..c]);
+                    for ch in 0..c {
+                        // max_pool's scan: row-major, strict `>`, NaN taken.
+                        let mut m = v00[ch];
+                        let mut best = 0u8;
+                        for (k, v) in [(1u8, v01[ch]), (2, v10[ch]), (3, v11[ch])] {
+                            if v > m || v.is_nan() {
+                                m = v;
+                                best = k;
+                            }
                         }
+                        let gv = g[ch];
+                        o00[ch] = if best == 0 { gv } else { 0.0 };
+                        o01[ch] = if best == 1 { gv } else { 0.0 };
+                        o10[ch] = if best == 2 { gv } else { 0.0 };
+                        o11[ch] = if best == 3 { gv } else { 0.0 };
                     }
-                    rows[(best.0 * x.w + 2 * ox + best.1) * c + ch] += dy[(oy * wo + ox) * c + ch];
                 }
+            }
+            match tap {
+                Some((t, scale)) => add_tap_and_mask(rows, (&t[base..][..rows.len()], scale), xs),
+                None => rows.iter_mut().zip(xs).for_each(|(d, y)| {
+                    if *y <= 0.0 {
+                        *d = 0.0;
+                    }
+                }),
             }
         });
     dx
+}
+
+/// `d = (d + scale·g)` where `y > 0`, zero elsewhere: a tap's direct gradient added to the
+/// gradient of a ReLU's output `y`, carried through the ReLU.
+fn add_tap_and_mask(d: &mut [f32], (g, scale): (&[f32], f32), y: &[f32]) {
+    const CHUNK: usize = 1 << 14;
+    d.par_chunks_mut(CHUNK)
+        .zip(g.par_chunks(CHUNK).zip(y.par_chunks(CHUNK)))
+        .for_each(|(d, (g, y))| {
+            for ((d, g), y) in d.iter_mut().zip(g).zip(y) {
+                *d = if *y > 0.0 { *d + scale * g } else { 0.0 };
+            }
+        });
 }
 
 #[cfg(test)]
@@ -890,11 +1121,59 @@ mod tests {
         let x = values(h * w * ci, 1);
         let oihw = values(co * ci * 9, 2);
         let bias = values(co, 3);
-        let (fwd, _) = column_weights(&oihw, ci, co);
+        let fwd = column_weights(&oihw, ci, co);
         let y = conv3x3(&x, [h, w], ci, &fwd, co, Some(&bias));
         let want = direct(&x, [h, w], ci, &oihw, co, &bias);
         for (a, b) in y.iter().zip(&want) {
             assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+    }
+
+    /// The input gradient of a 3x3 convolution (padding 1) by direct loops: every output
+    /// pixel `p` sends `dy[p, o] · W[o, i, ky, kx]` to the input pixel its tap read,
+    /// `p + (ky - 1, kx - 1)`.
+    fn direct_input_gradient(
+        dy: &[f32],
+        [h, w]: [usize; 2],
+        co: usize,
+        oihw: &[f32],
+        ci: usize,
+    ) -> Vec<f32> {
+        let mut dx = vec![0.0f64; h * w * ci];
+        for py in 0..h {
+            for px in 0..w {
+                for ky in 0..3 {
+                    for kx in 0..3 {
+                        let (qy, qx) = (py + ky, px + kx);
+                        if qy < 1 || qy > h || qx < 1 || qx > w {
+                            continue;
+                        }
+                        let q = (qy - 1) * w + qx - 1;
+                        for o in 0..co {
+                            for i in 0..ci {
+                                dx[q * ci + i] += dy[(py * w + px) * co + o] as f64
+                                    * oihw[((o * ci + i) * 3 + ky) * 3 + kx] as f64;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        dx.into_iter().map(|v| v as f32).collect()
+    }
+
+    /// The column layers' input gradient (product with the transposed weights, then the
+    /// sum over the taps) against the direct loops, on maps narrower and shorter than the
+    /// kernel too.
+    #[test]
+    fn column_input_gradient_matches_direct_loops() {
+        for (h, w, ci, co) in [(5, 7, 3, 4), (1, 1, 3, 8), (2, 5, 1, 3), (6, 3, 4, 16)] {
+            let oihw = values(co * ci * 9, 2);
+            let dy = values(h * w * co, 3);
+            let dx = conv3x3_input_gradient(&dy, [h, w], co, &column_weights(&oihw, ci, co), ci);
+            let want = direct_input_gradient(&dy, [h, w], co, &oihw, ci);
+            let e = max_rel(&dx, &want);
+            assert!(e < 1e-6, "{h}x{w} {co}->{ci}: {e}");
         }
     }
 
@@ -907,11 +1186,10 @@ mod tests {
             .fold(0.0f32, |m, (a, b)| m.max((a - b).abs() / scale))
     }
 
-    /// Winograd against the direct loops (forward, with bias and ReLU) and, read as the
-    /// rotated kernel, against the column formulation's input gradient (itself checked
-    /// against the loops above), in both thread mappings. Odd sizes give partial tiles at
-    /// the right and bottom edges; with per-thread blocks the maps split into several
-    /// blocks of tile rows.
+    /// Winograd against the direct loops: the forward (with bias and ReLU) and, with
+    /// [`backward_weights`], the input gradient, plain and through a ReLU's mask, in both
+    /// thread mappings. Odd sizes give partial tiles at the right and bottom edges; with
+    /// per-thread blocks the maps split into several blocks of tile rows.
     #[test]
     fn winograd_matches_direct_loops_and_columns() {
         for (h, w, ci, co) in [
@@ -924,28 +1202,59 @@ mod tests {
             let x = values(h * w * ci, 4);
             let oihw = values(co * ci * 9, 5);
             let bias = values(co, 6);
-            let (fwd, back) = column_weights(&oihw, ci, co);
-            let u = winograd_weights(&fwd, ci, co);
+            let u = winograd_weights(&column_weights(&oihw, ci, co), ci, co);
+            let u_back = backward_weights(&u, ci, co);
             let want_y = direct(&x, [h, w], ci, &oihw, co, &bias);
             let dy = values(h * w * co, 7);
-            let want_dx = conv3x3(&dy, [h, w], co, &back, ci, None);
+            let want_dx = direct_input_gradient(&dy, [h, w], co, &oihw, ci);
+            // A ReLU output for the mask: `values` is negative about half the time.
+            let relu = values(h * w * ci, 10);
+            let masked: Vec<f32> = want_dx
+                .iter()
+                .zip(&relu)
+                .map(|(d, y)| if *y > 0.0 { *d } else { 0.0 })
+                .collect();
             for shared in [0, usize::MAX] {
-                let y = winograd_mapped(&x, [h, w], [ci, co], (&u, false), Some(&bias), shared);
+                let bias = Epilogue::BiasRelu(&bias);
+                let y = winograd_mapped(&x, [h, w], [ci, co], &u, bias, shared);
                 let e = max_rel(&y, &want_y);
                 assert!(e < 1e-5, "forward {h}x{w} {ci}->{co}, {shared}: {e}");
-                let dx = winograd_mapped(&dy, [h, w], [co, ci], (&u, true), None, shared);
+                let dx = winograd_mapped(&dy, [h, w], [co, ci], &u_back, Epilogue::None, shared);
                 let e = max_rel(&dx, &want_dx);
                 assert!(e < 1e-5, "input gradient {h}x{w} {co}->{ci}, {shared}: {e}");
+                let mask = Epilogue::ReluMask(&relu);
+                let dx = winograd_mapped(&dy, [h, w], [co, ci], &u_back, mask, shared);
+                assert!(dx.iter().zip(&relu).all(|(d, y)| *y > 0.0 || *d == 0.0));
+                let e = max_rel(&dx, &masked);
+                assert!(
+                    e < 1e-5,
+                    "masked gradient {h}x{w} {co}->{ci}, {shared}: {e}"
+                );
             }
         }
         // The public entry point takes the same path as one of the two.
         let (ci, co) = (16, 16);
         let x = values(9 * 7 * ci, 8);
         let u = winograd_weights(&values(9 * ci * co, 9), ci, co);
+        let none = Epilogue::None;
         assert_eq!(
-            conv3x3_winograd(&x, [9, 7], [ci, co], &u, false, None),
-            winograd_mapped(&x, [9, 7], [ci, co], (&u, false), None, usize::MAX)
+            conv3x3_winograd(&x, [9, 7], [ci, co], &u, none),
+            winograd_mapped(&x, [9, 7], [ci, co], &u, none, usize::MAX)
         );
+    }
+
+    /// The lane-wise sum against a plain float64 sum, on lengths with remainders.
+    #[test]
+    fn l1_distance_matches_a_plain_sum() {
+        for n in [0, 5, 16, 300, 1000] {
+            let (x, y) = (values(n, 14), values(n, 15));
+            let want: f64 = x.iter().zip(&y).map(|(p, q)| (p - q).abs() as f64).sum();
+            let got = l1_distance(&x, &y);
+            assert!(
+                (got - want).abs() <= 1e-5 * want.max(1.0),
+                "{n}: {got} vs {want}"
+            );
+        }
     }
 
     #[test]
@@ -959,10 +1268,57 @@ mod tests {
         let y = max_pool(&x, 1);
         assert_eq!((y.h, y.w), (1, 2));
         assert_eq!(y.data, [2.0, 5.0]);
-        let dx = max_pool_backward(&[10.0, 20.0], [1, 2], &x, 1);
+        let dx = pool_relu_backward(&[10.0, 20.0], [1, 2], &x, 1, None);
         assert_eq!(
             dx,
             [10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, 0.0, 0.0, 0.0, 0.0]
         );
+    }
+
+    /// The fused backward against its three steps done one by one: pooling's backward (the
+    /// first maximum), the tap's gradient added, the ReLU's mask; two channels, odd height
+    /// and width (the dropped last row and column get only the tap's share), ties, zeros
+    /// and negatives.
+    #[test]
+    fn pool_relu_backward_matches_its_steps() {
+        let (h, w, c) = (5, 5, 2);
+        let data: Vec<f32> = values(h * w * c, 11)
+            .into_iter()
+            .enumerate()
+            .map(|(i, v)| {
+                if i % 7 == 0 {
+                    0.0
+                } else if i % 5 == 0 {
+                    0.25
+                } else {
+                    v
+                }
+            })
+            .collect();
+        let x = Map { data, h, w };
+        let (ho, wo) = (2, 2);
+        let dy = values(ho * wo * c, 12);
+        let tap = values(h * w * c, 13);
+        let scale = -0.5;
+        let mut want = vec![0.0f32; h * w * c];
+        for oy in 0..ho {
+            for ox in 0..wo {
+                for ch in 0..c {
+                    let at = |dy: usize, dx: usize| ((2 * oy + dy) * w + 2 * ox + dx) * c + ch;
+                    let mut best = at(0, 0);
+                    for (dy, dx) in [(0, 1), (1, 0), (1, 1)] {
+                        if x.data[at(dy, dx)] > x.data[best] {
+                            best = at(dy, dx);
+                        }
+                    }
+                    want[best] += dy[(oy * wo + ox) * c + ch];
+                }
+            }
+        }
+        for ((d, t), y) in want.iter_mut().zip(&tap).zip(&x.data) {
+            *d = if *y > 0.0 { *d + scale * t } else { 0.0 };
+        }
+        let got = pool_relu_backward(&dy, [ho, wo], &x, c, Some((&tap, scale)));
+        assert_eq!(got, want);
     }
 }
