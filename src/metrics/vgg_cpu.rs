@@ -9,21 +9,25 @@
 //!
 //! - maps are channels-last (`[H·W, C]`), so every gather copies runs of `C` floats;
 //! - a convolution with at least [`WINOGRAD_MIN_CHANNELS`] channels on both sides (all but
-//!   the first) is Winograd's minimal filtering F(2x2, 3x3) (Lavin and Gray, "Fast
-//!   Algorithms for Convolutional Neural Networks", 2016): each 2x2 output tile is
-//!   `Aᵀ [(G g Gᵀ) ⊙ (Bᵀ d B)] A` of its 4x4 input tile `d`, so a block of tiles is 16
-//!   matrix products `M_ξ[tiles, C_out] = V_ξ[tiles, C_in] · U_ξ[C_in, C_out]`: 16 products
-//!   per 4 pixels instead of 36, 2.25x fewer multiply-adds. The bias and the ReLU are
-//!   applied in the output transform while the tile is in cache;
+//!   the first) is one of Winograd's minimal filtering algorithms F(m x m, 3x3) (Lavin and
+//!   Gray, "Fast Algorithms for Convolutional Neural Networks", 2016): each m x m output
+//!   tile is `Aᵀ [(G g Gᵀ) ⊙ (Bᵀ d B)] A` of its α x α input tile `d` (α = m + 2), so a
+//!   block of tiles is α² matrix products `M_ξ[tiles, C_out] = V_ξ[tiles, C_in] ·
+//!   U_ξ[C_in, C_out]`. F(4x4, 3x3) (36 products per 16 pixels, 4x fewer multiply-adds than
+//!   the direct convolution) runs the layers of up to 256 channels; the 512-channel layers
+//!   keep F(2x2, 3x3) (16 per 4, 2.25x fewer), whose weights are 2.25x smaller and whose
+//!   maps at 138 x 200 (25 x 17, 12 x 8) give F(4x4) too few tiles per product: measured
+//!   per layer at 138 x 200 (forward and input gradient), F(4x4) took 17-42% less time
+//!   on the 64- to 256-channel layers, between 6% less and 2% more on the 25 x 17 maps
+//!   and 12-19% more on the 12 x 8 ones. The bias and the ReLU are applied in the output
+//!   transform while the tile is in cache;
 //! - the first convolution (3 input channels) keeps the column formulation: one product
 //!   per block of pixels, `Y[block, C_out] = col[block, 9·C_in] · W[9·C_in, C_out]`;
 //! - the input gradient of a 3x3 convolution (padding 1) is itself a 3x3 convolution of the
 //!   masked output gradient with the kernel rotated by 180° and its channel axes swapped,
-//!   so the backward runs the same routine; for Winograd, rotating `g` by 180° swaps rows 0
-//!   and 3 of `G` (`G J = P G`), so the backward's `U` is the forward's with indices 0 and 3
-//!   of both tile axes swapped and the channel axes transposed. It is stored as a second,
-//!   contiguous copy (`u_back`): read in place with transposed strides, every product
-//!   packed it element by element (7% of the loss's time at 138 x 200);
+//!   so the backward runs the same routine with those weights (`u_back`, transformed once;
+//!   stored contiguous, because read in place from the forward's with transposed strides
+//!   every product packed them element by element, 7% of the loss's time at 138 x 200);
 //! - the first convolution's input gradient (3 output channels) is the product of the
 //!   output gradient with the transposed weights, then a sum over the nine taps
 //!   (`conv3x3_input_gradient`);
@@ -40,7 +44,7 @@
 //! on rayon, one single-threaded product each; with one block, its product runs on all
 //! threads instead. A Winograd convolution does the same with blocks of tile rows
 //! (`WINOGRAD_BLOCK` floats of transformed tiles), except on a map small enough to be one
-//! block (`WINOGRAD_SHARED`): there the transforms are parallel over tile rows and the 16
+//! block (`WINOGRAD_SHARED`): there the transforms are parallel over tile rows and the α²
 //! products over ξ. Pooling is parallel over output rows.
 //!
 //! The reference twin is burn's own `Conv2d` / `max_pool2d` / `relu` stack
@@ -60,20 +64,29 @@ use crate::metrics::weights::HostWeights;
 /// the weights is paid over many pixels, small enough to stay in the last-level cache.
 const COL_BLOCK: usize = 1 << 20;
 
-/// Floats of one thread's Winograd block of transformed input and output tiles (2 MiB):
-/// its 16 products read and write them, so they should stay in the core's cache.
-const WINOGRAD_BLOCK: usize = 1 << 19;
+/// Floats of one thread's Winograd block of transformed input and output tiles (1 MiB):
+/// its α² products read and write them, so they should stay in the core's cache. Measured
+/// on VGG16's 64-channel layer at 138 x 200 with F(4x4, 3x3) on the development machine
+/// (2 MiB of L2 per core), forward and input gradient: 2.9 ms each at 1 MiB, 3.2-3.4 at
+/// 512 KiB, 3.5-3.7 at 2 MiB.
+const WINOGRAD_BLOCK: usize = 1 << 18;
 
 /// Floats of transformed tiles up to which a map is one Winograd block shared by all
-/// threads (16 MiB: VGG16's maps from conv3 on at 138 x 200; none at 550 x 802).
+/// threads (16 MiB: VGG16's maps from conv2 on at 138 x 200; none at 550 x 802).
 /// Measured per layer at 138 x 200 on the development machine (forward and input
-/// gradient): on these deep maps the shared block was 2-60% faster than per-thread blocks,
-/// on the larger maps 13-45% slower.
+/// gradient), with F(2x2, 3x3): on the maps from conv3 on the shared block was 2-60%
+/// faster than per-thread blocks, on the larger maps 13-45% slower; with F(4x4, 3x3),
+/// whose conv2 maps also fit, a limit of 8 MiB (conv2 and conv3 in per-thread blocks) was
+/// 2-27% slower on those layers.
 const WINOGRAD_SHARED: usize = 1 << 22;
 
-/// Channels (input and output) from which a convolution runs as Winograd F(2x2, 3x3): with
-/// 3 input channels the 16 transformed products are too thin to pay for the transforms.
+/// Channels (input and output) from which a convolution runs as Winograd: with 3 input
+/// channels the transformed products are too thin to pay for the transforms.
 pub const WINOGRAD_MIN_CHANNELS: usize = 16;
+
+/// Channels (the larger of input and output) up to which a Winograd convolution is
+/// F(4x4, 3x3); above, F(2x2, 3x3). See [`winograd_for`].
+const F4_MAX_CHANNELS: usize = 256;
 
 thread_local! {
     /// The calling thread's buffers for a shared Winograd block (transformed tiles,
@@ -83,13 +96,99 @@ thread_local! {
         const { std::cell::Cell::new((Vec::new(), Vec::new())) };
 }
 
-/// Winograd F(2x2, 3x3)'s filter transform `G` (4x3), after Lavin and Gray (2016), eq. 7.
-const WINOGRAD_G: [[f32; 3]; 4] = [
-    [1.0, 0.0, 0.0],
-    [0.5, 0.5, 0.5],
-    [0.5, -0.5, 0.5],
-    [0.0, 0.0, 1.0],
-];
+/// One of Lavin and Gray's minimal filtering algorithms F(m x m, 3 x 3) ("Fast Algorithms
+/// for Convolutional Neural Networks", 2016): output tiles of `m x m` pixels from input
+/// tiles of `α x α` (α = m + 2), `Y = Aᵀ [(G g Gᵀ) ⊙ (Bᵀ d B)] A`, with `α²` products per
+/// tile.
+#[derive(Debug)]
+struct Winograd {
+    /// Output tile side `m`.
+    m: usize,
+    /// `Bᵀ`, α x α, row-major. The transforms are written out by hand; the tests check
+    /// them against these matrices.
+    #[cfg_attr(not(test), allow(dead_code))]
+    bt: &'static [f32],
+    /// `G`, α x 3, row-major.
+    g: &'static [f32],
+    /// `Aᵀ`, m x α, row-major (checked like `bt`).
+    #[cfg_attr(not(test), allow(dead_code))]
+    at: &'static [f32],
+}
+
+impl Winograd {
+    /// Input tile side α.
+    fn alpha(&self) -> usize {
+        self.m + 2
+    }
+
+    /// Products per tile, α².
+    fn products(&self) -> usize {
+        self.alpha() * self.alpha()
+    }
+}
+
+/// F(2x2, 3x3), Lavin and Gray's eq. 7: 16 products per 4 pixels, 2.25x fewer
+/// multiply-adds than the direct convolution.
+const F2: Winograd = Winograd {
+    m: 2,
+    #[rustfmt::skip]
+    bt: &[
+        1.0, 0.0, -1.0, 0.0,
+        0.0, 1.0, 1.0, 0.0,
+        0.0, -1.0, 1.0, 0.0,
+        0.0, 1.0, 0.0, -1.0,
+    ],
+    #[rustfmt::skip]
+    g: &[
+        1.0, 0.0, 0.0,
+        0.5, 0.5, 0.5,
+        0.5, -0.5, 0.5,
+        0.0, 0.0, 1.0,
+    ],
+    #[rustfmt::skip]
+    at: &[
+        1.0, 1.0, 1.0, 0.0,
+        0.0, 1.0, -1.0, -1.0,
+    ],
+};
+
+/// F(4x4, 3x3), Lavin and Gray's section 5 (interpolation points 0, ±1, ±2, ∞): 36
+/// products per 16 pixels, 4x fewer multiply-adds than the direct convolution, for larger
+/// transforms and float32 rounding a few times F(2x2, 3x3)'s.
+const F4: Winograd = Winograd {
+    m: 4,
+    #[rustfmt::skip]
+    bt: &[
+        4.0, 0.0, -5.0, 0.0, 1.0, 0.0,
+        0.0, -4.0, -4.0, 1.0, 1.0, 0.0,
+        0.0, 4.0, -4.0, -1.0, 1.0, 0.0,
+        0.0, -2.0, -1.0, 2.0, 1.0, 0.0,
+        0.0, 2.0, -1.0, -2.0, 1.0, 0.0,
+        0.0, 4.0, 0.0, -5.0, 0.0, 1.0,
+    ],
+    #[rustfmt::skip]
+    g: &[
+        1.0 / 4.0, 0.0, 0.0,
+        -1.0 / 6.0, -1.0 / 6.0, -1.0 / 6.0,
+        -1.0 / 6.0, 1.0 / 6.0, -1.0 / 6.0,
+        1.0 / 24.0, 1.0 / 12.0, 1.0 / 6.0,
+        1.0 / 24.0, -1.0 / 12.0, 1.0 / 6.0,
+        0.0, 0.0, 1.0,
+    ],
+    #[rustfmt::skip]
+    at: &[
+        1.0, 1.0, 1.0, 1.0, 1.0, 0.0,
+        0.0, 1.0, -1.0, 2.0, -2.0, 0.0,
+        0.0, 1.0, 1.0, 4.0, 4.0, 0.0,
+        0.0, 1.0, -1.0, 8.0, -8.0, 1.0,
+    ],
+};
+
+/// Products per tile of the largest [`Winograd`] (F(4x4, 3x3)).
+const MAX_PRODUCTS: usize = 36;
+
+/// Output pixels per tile of the largest [`Winograd`].
+const MAX_PIXELS: usize = 16;
 
 /// One 3x3 convolution (padding 1, stride 1), in the column or the Winograd formulation.
 #[derive(Debug)]
@@ -104,11 +203,13 @@ struct Layer {
     /// Winograd layer. The input gradient reads them transposed
     /// ([`conv3x3_input_gradient`]).
     w: Vec<f32>,
-    /// Winograd-transformed weights `U = G g Gᵀ`, `[16, C_in, C_out]` (ξ = 4·a + b); empty
+    /// The Winograd algorithm of this layer; `None` for a column layer.
+    winograd: Option<&'static Winograd>,
+    /// Winograd-transformed weights `U = G g Gᵀ`, `[α², C_in, C_out]` (ξ = α·a + b); empty
     /// for a column layer.
     u: Vec<f32>,
-    /// The input gradient's Winograd weights, `[16, C_out, C_in]` ([`backward_weights`]);
-    /// empty for a column layer.
+    /// The input gradient's: those of the kernel rotated by 180° with its channel axes
+    /// swapped, `[α², C_out, C_in]`; empty for a column layer.
     u_back: Vec<f32>,
     bias: Vec<f32>,
 }
@@ -166,19 +267,22 @@ impl VggCpu {
                 assert_eq!(w.shape, [co, ci, 3, 3], "VGG16 kernel shape");
                 assert_eq!(b.shape, [co], "VGG16 bias shape");
                 let fwd = column_weights(&w.data, ci, co);
-                let winograd = ci >= WINOGRAD_MIN_CHANNELS && co >= WINOGRAD_MIN_CHANNELS;
-                let (w, u) = if winograd {
-                    (Vec::new(), winograd_weights(&fwd, ci, co))
-                } else {
-                    (fwd, Vec::new())
+                let winograd = winograd_for(ci, co);
+                let (w, u, u_back) = match winograd {
+                    Some(kind) => {
+                        let back = rotated_column_weights(&w.data, ci, co);
+                        let u = winograd_weights(&fwd, ci, co, kind);
+                        (Vec::new(), u, winograd_weights(&back, co, ci, kind))
+                    }
+                    None => (fwd, Vec::new(), Vec::new()),
                 };
-                let u_back = backward_weights(&u, ci, co);
                 Layer {
                     ci,
                     co,
                     pool_before: spec.pool_before.is_some(),
                     tap: spec.tap,
                     w,
+                    winograd,
                     u,
                     u_back,
                     bias: b.data.clone(),
@@ -478,11 +582,12 @@ fn conv3x3(
 impl Layer {
     /// The convolution, its bias and its ReLU: `[H·W, C_in]` → `[H·W, C_out]`.
     fn forward(&self, x: &[f32], hw: [usize; 2]) -> Vec<f32> {
-        if self.u.is_empty() {
-            conv3x3(x, hw, self.ci, &self.w, self.co, Some(&self.bias))
-        } else {
-            let epilogue = Epilogue::BiasRelu(&self.bias);
-            conv3x3_winograd(x, hw, [self.ci, self.co], &self.u, epilogue)
+        match self.winograd {
+            None => conv3x3(x, hw, self.ci, &self.w, self.co, Some(&self.bias)),
+            Some(kind) => {
+                let epilogue = Epilogue::BiasRelu(&self.bias);
+                conv3x3_winograd(x, hw, [self.ci, self.co], (&self.u, kind), epilogue)
+            }
         }
     }
 
@@ -490,7 +595,7 @@ impl Layer {
     /// `[H·W, C_out]` → `[H·W, C_in]`; with `relu`, zero where that map (the previous
     /// layer's ReLU output, `[H·W, C_in]`) is not positive.
     fn input_gradient(&self, dy: &[f32], hw: [usize; 2], relu: Option<&[f32]>) -> Vec<f32> {
-        if self.u.is_empty() {
+        let Some(kind) = self.winograd else {
             let mut dx = conv3x3_input_gradient(dy, hw, self.co, &self.w, self.ci);
             if let Some(y) = relu {
                 dx.par_iter_mut().zip(y.par_iter()).for_each(|(d, y)| {
@@ -499,11 +604,10 @@ impl Layer {
                     }
                 });
             }
-            dx
-        } else {
-            let epilogue = relu.map_or(Epilogue::None, Epilogue::ReluMask);
-            conv3x3_winograd(dy, hw, [self.co, self.ci], &self.u_back, epilogue)
-        }
+            return dx;
+        };
+        let epilogue = relu.map_or(Epilogue::None, Epilogue::ReluMask);
+        conv3x3_winograd(dy, hw, [self.co, self.ci], (&self.u_back, kind), epilogue)
     }
 }
 
@@ -570,22 +674,57 @@ fn conv3x3_input_gradient(
     dx
 }
 
+/// The Winograd algorithm of a convolution with these channels: none (the column
+/// formulation) below [`WINOGRAD_MIN_CHANNELS`], F(4x4, 3x3) up to [`F4_MAX_CHANNELS`],
+/// F(2x2, 3x3) above.
+fn winograd_for(ci: usize, co: usize) -> Option<&'static Winograd> {
+    if ci.min(co) < WINOGRAD_MIN_CHANNELS {
+        None
+    } else if ci.max(co) <= F4_MAX_CHANNELS {
+        Some(&F4)
+    } else {
+        Some(&F2)
+    }
+}
+
+/// PyTorch's OIHW 3x3 kernel rotated by 180° with its channel axes swapped, as column
+/// weights `[9·C_out, C_in]` (rows ordered (ky, kx, c_out)): the kernel whose convolution
+/// is the input gradient.
+fn rotated_column_weights(oihw: &[f32], ci: usize, co: usize) -> Vec<f32> {
+    let mut back = vec![0.0f32; 9 * co * ci];
+    for t in 0..9 {
+        for o in 0..co {
+            for i in 0..ci {
+                back[(t * co + o) * ci + i] = oihw[(o * ci + i) * 9 + 8 - t];
+            }
+        }
+    }
+    back
+}
+
 /// `U = G g Gᵀ` for every channel pair, from column weights `[9·C_in, C_out]` (rows
-/// ordered (ky, kx, c_in)) to `[16, C_in, C_out]`.
-fn winograd_weights(w: &[f32], ci: usize, co: usize) -> Vec<f32> {
-    let mut u = vec![0.0f32; 16 * ci * co];
+/// ordered (ky, kx, c_in)) to `[α², C_in, C_out]`.
+fn winograd_weights(w: &[f32], ci: usize, co: usize, kind: &Winograd) -> Vec<f32> {
+    let a = kind.alpha();
+    let mut u = vec![0.0f32; a * a * ci * co];
+    let mut g = [0.0f32; 9];
+    let mut gg = vec![0.0f32; a * 3];
     for i in 0..ci {
         for o in 0..co {
-            let g = |ky: usize, kx: usize| w[((ky * 3 + kx) * ci + i) * co + o];
-            for (a, ga) in WINOGRAD_G.iter().enumerate() {
-                for (b, gb) in WINOGRAD_G.iter().enumerate() {
-                    let mut s = 0.0f32;
-                    for (ky, gay) in ga.iter().enumerate() {
-                        for (kx, gbx) in gb.iter().enumerate() {
-                            s += gay * g(ky, kx) * gbx;
-                        }
-                    }
-                    u[((a * 4 + b) * ci + i) * co + o] = s;
+            for (t, v) in g.iter_mut().enumerate() {
+                *v = w[(t * ci + i) * co + o];
+            }
+            // G g, α x 3.
+            for (r, row) in gg.chunks_exact_mut(3).enumerate() {
+                for (kx, v) in row.iter_mut().enumerate() {
+                    *v = (0..3).map(|ky| kind.g[r * 3 + ky] * g[ky * 3 + kx]).sum();
+                }
+            }
+            // (G g) Gᵀ.
+            for r in 0..a {
+                for c in 0..a {
+                    let v: f32 = (0..3).map(|kx| gg[r * 3 + kx] * kind.g[c * 3 + kx]).sum();
+                    u[((r * a + c) * ci + i) * co + o] = v;
                 }
             }
         }
@@ -593,38 +732,12 @@ fn winograd_weights(w: &[f32], ci: usize, co: usize) -> Vec<f32> {
     u
 }
 
-/// The Winograd weights of the input gradient, `[16, C_out, C_in]`, from the forward's
-/// `u` `[16, C_in, C_out]`: the 180°-rotated kernel's transform takes, at tile position
-/// `ξ = 4·a + b`, the forward's at `(flip(a), flip(b))` with 0 and 3 swapped (rows 0 and 3
-/// of `G` swap on both axes, see the module docs), its channel axes transposed.
-fn backward_weights(u: &[f32], ci: usize, co: usize) -> Vec<f32> {
-    let flip = |a: usize| match a {
-        0 => 3,
-        3 => 0,
-        a => a,
-    };
-    let mut back = vec![0.0f32; u.len()];
-    if u.is_empty() {
-        return back;
-    }
-    for (xi, b) in back.chunks_exact_mut(co * ci).enumerate() {
-        let src = &u[(flip(xi / 4) * 4 + flip(xi % 4)) * ci * co..][..ci * co];
-        for (o, row) in b.chunks_exact_mut(ci).enumerate() {
-            for (i, v) in row.iter_mut().enumerate() {
-                *v = src[i * co + o];
-            }
-        }
-    }
-    back
-}
-
-/// A 3x3 convolution (padding 1, stride 1) as Winograd F(2x2, 3x3) of a channels-last map
-/// `x` `[H·W, C_in]` with `[c_in, c_out] = channels`, and its [`Epilogue`]. `u` is
-/// [`winograd_weights`]' `[16, C_in, C_out]` (or [`backward_weights`]' for the input
-/// gradient). Returns `[H·W, C_out]`.
+/// A 3x3 convolution (padding 1, stride 1) as Winograd F(m x m, 3x3) of a channels-last
+/// map `x` `[H·W, C_in]` with `[c_in, c_out] = channels`, and its [`Epilogue`]. `u` is
+/// [`winograd_weights`]' `[α², C_in, C_out]` for `kind`. Returns `[H·W, C_out]`.
 ///
-/// Three steps: the input transform `V = Bᵀ d B` of every 4x4 input tile, 16 products
-/// `M_ξ = V_ξ U_ξ`, and the output transform `Aᵀ M A` (with bias and ReLU) into the 2x2
+/// Three steps: the input transform `V = Bᵀ d B` of every α x α input tile, α² products
+/// `M_ξ = V_ξ U_ξ`, and the output transform `Aᵀ M A` (with its epilogue) into the m x m
 /// pixels each tile covers. Two thread mappings:
 /// - a map whose transformed tiles fit [`WINOGRAD_SHARED`] floats (the deep, small maps)
 ///   is one block on all threads: transforms parallel over tile rows, the products
@@ -637,10 +750,10 @@ fn conv3x3_winograd(
     x: &[f32],
     hw: [usize; 2],
     channels: [usize; 2],
-    u: &[f32],
+    weights: (&[f32], &Winograd),
     epilogue: Epilogue,
 ) -> Vec<f32> {
-    winograd_mapped(x, hw, channels, u, epilogue, WINOGRAD_SHARED)
+    winograd_mapped(x, hw, channels, weights, epilogue, WINOGRAD_SHARED)
 }
 
 /// What the output transform does to each output pixel after `Aᵀ M A`, while the pixel is
@@ -662,12 +775,12 @@ fn winograd_mapped(
     x: &[f32],
     [h, w]: [usize; 2],
     [ci, co]: [usize; 2],
-    u: &[f32],
+    (u, kind): (&[f32], &Winograd),
     epilogue: Epilogue,
     shared: usize,
 ) -> Vec<f32> {
     debug_assert_eq!(x.len(), h * w * ci);
-    debug_assert_eq!(u.len(), 16 * ci * co);
+    debug_assert_eq!(u.len(), kind.products() * ci * co);
     if let Epilogue::ReluMask(y) = epilogue {
         assert_eq!(y.len(), h * w * co, "Winograd: ReLU mask shape");
     }
@@ -679,7 +792,7 @@ fn winograd_mapped(
     let len = h * w * co;
     let mut out: Vec<f32> = Vec::with_capacity(len);
     let dst = &mut out.spare_capacity_mut()[..len];
-    winograd_tiles(x, [h, w], [ci, co], u, epilogue, shared, dst);
+    winograd_tiles(x, [h, w], [ci, co], (u, kind), epilogue, shared, dst);
     // SAFETY: `winograd_tiles` wrote all `len` values of `dst` (see `write_tile_row`).
     unsafe { out.set_len(len) };
     out
@@ -687,173 +800,370 @@ fn winograd_mapped(
 
 /// [`winograd_mapped`]'s work on its uninitialised output `out` `[H·W, C_out]`, every value
 /// of which it writes.
+#[allow(clippy::too_many_arguments)]
 fn winograd_tiles(
     x: &[f32],
     [h, w]: [usize; 2],
     [ci, co]: [usize; 2],
-    u: &[f32],
+    (u, kind): (&[f32], &Winograd),
     epilogue: Epilogue,
     shared: usize,
     out: &mut [MaybeUninit<f32>],
 ) {
-    let (tiles_h, tiles_w) = (h.div_ceil(2), w.div_ceil(2));
+    let (m, a, n) = (kind.m, kind.alpha(), kind.products());
+    let (tiles_h, tiles_w) = (h.div_ceil(m), w.div_ceil(m));
     let zero = vec![0.0f32; ci];
-    // Transforms one 4x4 input tile (tile row `ty`, column `tx`) into `vt` `[16, C_in]`.
+    // Transforms one α x α input tile (tile row `ty`, column `tx`) into `vt` `[α², C_in]`.
     let transform = |ty: usize, tx: usize, vt: &mut [f32], t: &mut [f32]| {
-        let mut d: [&[f32]; 16] = [&zero[..]; 16];
-        for dy in 0..4 {
-            let sy = 2 * ty + dy;
+        let mut d: [&[f32]; MAX_PRODUCTS] = [&zero[..]; MAX_PRODUCTS];
+        for dy in 0..a {
+            let sy = m * ty + dy;
             if sy == 0 || sy > h {
                 continue;
             }
-            for dx in 0..4 {
-                let sx = 2 * tx + dx;
+            for dx in 0..a {
+                let sx = m * tx + dx;
                 if sx == 0 || sx > w {
                     continue;
                 }
                 let s = ((sy - 1) * w + sx - 1) * ci;
-                d[dy * 4 + dx] = &x[s..s + ci];
+                d[dy * a + dx] = &x[s..s + ci];
             }
         }
-        input_transform(&d, vt, t, ci);
+        if m == 2 {
+            let d: &[&[f32]; 16] = d[..16].try_into().expect("16 slots");
+            input_transform(d, vt, t, ci);
+        } else {
+            input_transform_f4(&d[..n], vt, t, ci);
+        }
     };
-    // `U_ξ` and its strides as the `[C_in, C_out]` right-hand side of product ξ.
-    let weights = |xi: usize| (&u[xi * ci * co..][..ci * co], [co, 1]);
-    let row_floats = tiles_w * 16 * (ci + co);
+    // `U_ξ` as the `[C_in, C_out]` right-hand side of product ξ.
+    let weights = |xi: usize| &u[xi * ci * co..][..ci * co];
+    let row_floats = tiles_w * n * (ci + co);
     if tiles_h * row_floats <= shared {
         let nt = tiles_h * tiles_w;
         // Empty when a call further up this thread holds them: then they grow fresh.
-        let (mut v, mut m) = WINOGRAD_SCRATCH.take();
-        v.resize(nt * 16 * ci, 0.0);
-        m.resize(nt * 16 * co, 0.0);
+        let (mut v, mut mm) = WINOGRAD_SCRATCH.take();
+        v.resize(nt * n * ci, 0.0);
+        mm.resize(nt * n * co, 0.0);
         // V: [tile, ξ, C_in], one task per tile row.
-        v.par_chunks_mut(tiles_w * 16 * ci)
+        v.par_chunks_mut(tiles_w * n * ci)
             .enumerate()
             .for_each_init(Vec::new, |t: &mut Vec<f32>, (ty, vr)| {
-                t.resize(16 * ci, 0.0);
-                for (tx, vt) in vr.chunks_exact_mut(16 * ci).enumerate() {
+                t.resize(n * ci, 0.0);
+                for (tx, vt) in vr.chunks_exact_mut(n * ci).enumerate() {
                     transform(ty, tx, vt, t);
                 }
             });
         // M: [ξ, tile, C_out], one task per ξ.
-        m.par_chunks_mut(nt * co).enumerate().for_each(|(xi, mx)| {
-            let (ux, strides) = weights(xi);
+        mm.par_chunks_mut(nt * co).enumerate().for_each(|(xi, mx)| {
             matmul_serial(
                 [nt, co, ci],
                 mx,
                 [co, 1],
                 false,
                 &v[xi * ci..],
-                [16 * ci, 1],
-                ux,
-                strides,
+                [n * ci, 1],
+                weights(xi),
+                [co, 1],
             );
         });
-        let products = &m[..];
-        out.par_chunks_mut(2 * w * co).enumerate().for_each_init(
+        let products = &mm[..];
+        out.par_chunks_mut(m * w * co).enumerate().for_each_init(
             Vec::new,
-            |s: &mut Vec<f32>, (ty, pair)| {
-                s.resize(8 * co, 0.0);
-                let at = ty * 2 * w * co;
-                write_tile_row((pair, at), [w, co], s, epilogue, |tx, xi| {
+            |s: &mut Vec<f32>, (ty, group)| {
+                s.resize((m * a + m) * co, 0.0);
+                let at = ty * m * w * co;
+                write_tile_row(kind, (group, at), [w, co], s, epilogue, |tx, xi| {
                     &products[(xi * nt + ty * tiles_w + tx) * co..][..co]
                 });
             },
         );
-        WINOGRAD_SCRATCH.set((v, m));
+        WINOGRAD_SCRATCH.set((v, mm));
         return;
     }
     let threads = rayon::current_num_threads().max(1);
     let mut blocks = tiles_h.div_ceil((WINOGRAD_BLOCK / row_floats).max(1));
     blocks = blocks.div_ceil(threads) * threads;
     let rows = tiles_h.div_ceil(blocks.min(tiles_h));
-    out.par_chunks_mut(2 * rows * w * co)
+    out.par_chunks_mut(m * rows * w * co)
         .enumerate()
         .for_each_init(
             || (Vec::new(), Vec::new(), Vec::new()),
-            |(v, m, s): &mut (Vec<f32>, Vec<f32>, Vec<f32>), (bi, o)| {
-                let nt = (o.len() / (w * co)).div_ceil(2) * tiles_w;
-                v.resize(nt * 16 * ci, 0.0);
-                m.resize(nt * 16 * co, 0.0);
-                s.resize(16 * ci.max(co), 0.0);
+            |(v, mm, s): &mut (Vec<f32>, Vec<f32>, Vec<f32>), (bi, o)| {
+                let nt = (o.len() / (w * co)).div_ceil(m) * tiles_w;
+                v.resize(nt * n * ci, 0.0);
+                mm.resize(nt * n * co, 0.0);
+                s.resize((n * ci).max((m * a + m) * co), 0.0);
                 // V: [tile, ξ, C_in].
-                for (t, vt) in v.chunks_exact_mut(16 * ci).enumerate() {
+                for (t, vt) in v.chunks_exact_mut(n * ci).enumerate() {
                     transform(bi * rows + t / tiles_w, t % tiles_w, vt, s);
                 }
                 // M: [tile, ξ, C_out].
-                for xi in 0..16 {
-                    let (ux, strides) = weights(xi);
+                for xi in 0..n {
                     matmul_serial(
                         [nt, co, ci],
-                        &mut m[xi * co..],
-                        [16 * co, 1],
+                        &mut mm[xi * co..],
+                        [n * co, 1],
                         false,
                         &v[xi * ci..],
-                        [16 * ci, 1],
-                        ux,
-                        strides,
+                        [n * ci, 1],
+                        weights(xi),
+                        [co, 1],
                     );
                 }
-                for (r, pair) in o.chunks_mut(2 * w * co).enumerate() {
-                    let m = &m[r * tiles_w * 16 * co..];
-                    let at = (bi * rows + r) * 2 * w * co;
-                    write_tile_row((pair, at), [w, co], s, epilogue, |tx, xi| {
-                        &m[(tx * 16 + xi) * co..][..co]
+                for (r, group) in o.chunks_mut(m * w * co).enumerate() {
+                    let mr = &mm[r * tiles_w * n * co..];
+                    let at = (bi * rows + r) * m * w * co;
+                    write_tile_row(kind, (group, at), [w, co], s, epilogue, |tx, xi| {
+                        &mr[(tx * n + xi) * co..][..co]
                     });
                 }
             },
         );
 }
 
-/// The output transform of one row of tiles into `pair`, the (one or two) output rows it
+/// The output transform of one row of tiles into `group`, the (up to `m`) output rows it
 /// covers (`[rows·W, C_out]`, starting at float `at` of the output map), every value of
 /// which it writes; `product(tx, ξ)` is tile `tx`'s product `ξ` (`[C_out]`), and `s` is
-/// [`output_transform`]'s scratch.
+/// scratch of `(m·α + m)·C_out` floats.
 fn write_tile_row<'a>(
-    (pair, at): (&mut [MaybeUninit<f32>], usize),
+    kind: &Winograd,
+    (group, at): (&mut [MaybeUninit<f32>], usize),
     [w, co]: [usize; 2],
     s: &mut [f32],
     epilogue: Epilogue,
     product: impl Fn(usize, usize) -> &'a [f32],
 ) {
-    let split = (w * co).min(pair.len());
-    let (top, bottom) = pair.split_at_mut(split);
-    let mut top = top.chunks_exact_mut(co);
-    let mut bottom = bottom.chunks_exact_mut(co);
-    // The mask's pixels under `pair`, split alike.
-    let (mut mask_top, mut mask_bottom) = match epilogue {
-        Epilogue::ReluMask(y) => {
-            let (t, b) = y[at..][..split + bottom.len() * co].split_at(split);
-            (Some(t.chunks_exact(co)), Some(b.chunks_exact(co)))
-        }
-        _ => (None, None),
+    let m = kind.m;
+    let len = group.len();
+    let mut rows: Vec<_> = group
+        .chunks_mut(w * co)
+        .map(|r| r.chunks_exact_mut(co))
+        .collect();
+    // The mask's pixels under `group`, split alike.
+    let mut masks: Vec<_> = match epilogue {
+        Epilogue::ReluMask(y) => y[at..][..len]
+            .chunks(w * co)
+            .map(|r| r.chunks_exact(co))
+            .collect(),
+        _ => Vec::new(),
     };
     let bias = match epilogue {
         Epilogue::BiasRelu(b) => Some(b),
         _ => None,
     };
-    fn next<'a>(it: &mut Option<std::slice::ChunksExact<'a, f32>>) -> Option<&'a [f32]> {
-        it.as_mut()?.next()
+    // Every pixel of the group is one of the m x m of exactly one tile `tx`.
+    for tx in 0..w.div_ceil(m) {
+        let mut y: TilePixels = std::array::from_fn(|_| None);
+        let mut mask = [None; MAX_PIXELS];
+        for r in 0..m {
+            for q in 0..m {
+                if let Some(it) = rows.get_mut(r) {
+                    y[r * m + q] = it.next();
+                }
+                if let Some(it) = masks.get_mut(r) {
+                    mask[r * m + q] = it.next();
+                }
+            }
+        }
+        let mt: [&[f32]; MAX_PRODUCTS] = std::array::from_fn(|xi| {
+            if xi < kind.products() {
+                product(tx, xi)
+            } else {
+                &[]
+            }
+        });
+        if m == 2 {
+            let [y0, y1, y2, y3, ..] = y;
+            let [k0, k1, k2, k3, ..] = mask;
+            let mt: &[&[f32]; 16] = mt[..16].try_into().expect("16 products");
+            output_transform(mt, ([y0, y1, y2, y3], [k0, k1, k2, k3]), s, co, bias);
+        } else {
+            output_transform_f4(&mt[..kind.products()], (y, mask), s, co, bias);
+        }
     }
-    // Every pixel of the pair is one of the four of exactly one tile `tx`.
-    for tx in 0..w.div_ceil(2) {
-        let y = [top.next(), top.next(), bottom.next(), bottom.next()];
-        let mask = [
-            next(&mut mask_top),
-            next(&mut mask_top),
-            next(&mut mask_bottom),
-            next(&mut mask_bottom),
-        ];
-        let m: [&[f32]; 16] = std::array::from_fn(|xi| product(tx, xi));
-        output_transform(&m, (y, mask), s, co, bias);
+}
+
+/// `V = Bᵀ d B` of one 6x6 tile of channel vectors `d` (row-major, each `c` long) into `v`
+/// `[36, c]` for F(4x4, 3x3) ([`F4`]'s `Bᵀ`, written out); `t` is scratch of `36·c` floats.
+/// Each 1-D step reads six channel vectors and writes six in one pass, in AVX2's lanes
+/// where the CPU has them.
+fn input_transform_f4(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return unsafe { input_transform_f4_avx2(d, v, t, c) };
+    }
+    input_transform_f4_generic(d, v, t, c);
+}
+
+/// [`input_transform_f4`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn input_transform_f4_avx2(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    input_transform_f4_generic(d, v, t, c);
+}
+
+#[inline(always)]
+fn input_transform_f4_generic(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    // t = Bᵀ d, stored column by column: t[(col·6 + r)·c ..] = (Bᵀ d)[r][col].
+    for (col, tc) in t[..36 * c].chunks_exact_mut(6 * c).enumerate() {
+        let d: [&[f32]; 6] = std::array::from_fn(|k| d[k * 6 + col]);
+        bt_f4(d, tc, c);
+    }
+    // V = t B, row by row: V[r][col] = (Bᵀ (row r of t)ᵀ)[col].
+    let t = &t[..36 * c];
+    for (r, vr) in v[..36 * c].chunks_exact_mut(6 * c).enumerate() {
+        let row: [&[f32]; 6] = std::array::from_fn(|col| &t[(col * 6 + r) * c..][..c]);
+        bt_f4(row, vr, c);
+    }
+}
+
+/// `o[k] = Σ_j Bᵀ[k][j] d[j]` for F(4x4, 3x3)'s `Bᵀ`, element-wise over `c` channels; `o`
+/// holds the six results one after another.
+#[inline(always)]
+fn bt_f4(d: [&[f32]; 6], o: &mut [f32], c: usize) {
+    let [d0, d1, d2, d3, d4, d5] = d.map(|d| &d[..c]);
+    let (o0, rest) = o[..6 * c].split_at_mut(c);
+    let (o1, rest) = rest.split_at_mut(c);
+    let (o2, rest) = rest.split_at_mut(c);
+    let (o3, rest) = rest.split_at_mut(c);
+    let (o4, o5) = rest.split_at_mut(c);
+    for j in 0..c {
+        let (a0, a1, a2, a3, a4, a5) = (d0[j], d1[j], d2[j], d3[j], d4[j], d5[j]);
+        o0[j] = 4.0 * a0 - 5.0 * a2 + a4;
+        o1[j] = -4.0 * (a1 + a2) + a3 + a4;
+        o2[j] = 4.0 * (a1 - a2) - a3 + a4;
+        o3[j] = 2.0 * (a3 - a1) - a2 + a4;
+        o4[j] = 2.0 * (a1 - a3) - a2 + a4;
+        o5[j] = 4.0 * a1 - 5.0 * a3 + a5;
+    }
+}
+
+/// `o[k] = Σ_j Aᵀ[k][j] m[j]` for F(4x4, 3x3)'s `Aᵀ` (4 x 6), element-wise over `c`
+/// channels; `o` holds the four results one after another.
+#[inline(always)]
+fn at_f4(m: [&[f32]; 6], o: &mut [f32], c: usize) {
+    let [m0, m1, m2, m3, m4, m5] = m.map(|m| &m[..c]);
+    let (o0, rest) = o[..4 * c].split_at_mut(c);
+    let (o1, rest) = rest.split_at_mut(c);
+    let (o2, o3) = rest.split_at_mut(c);
+    for j in 0..c {
+        let (a0, a1, a2, a3, a4, a5) = (m0[j], m1[j], m2[j], m3[j], m4[j], m5[j]);
+        let (sum12, dif12) = (a1 + a2, a1 - a2);
+        let (sum34, dif34) = (a3 + a4, a3 - a4);
+        o0[j] = a0 + sum12 + sum34;
+        o1[j] = dif12 + 2.0 * dif34;
+        o2[j] = sum12 + 4.0 * sum34;
+        o3[j] = dif12 + 8.0 * dif34 + a5;
+    }
+}
+
+/// `Y = Aᵀ M A` of one tile's 36 products `m` (each `c` long) into its 4x4 output pixels
+/// `y` (row-major; `None` past the map's edge) for F(4x4, 3x3) ([`F4`]'s `Aᵀ`, written
+/// out), plus `bias` and the ReLU when given, or zero where the pixel's `mask` (when given)
+/// is not positive. `s` is scratch of `28·c` floats.
+fn output_transform_f4(
+    m: &[&[f32]],
+    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
+    s: &mut [f32],
+    c: usize,
+    bias: Option<&[f32]>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return unsafe { output_transform_f4_avx2(m, (y, mask), s, c, bias) };
+    }
+    output_transform_f4_generic(m, (y, mask), s, c, bias);
+}
+
+/// [`output_transform_f4`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn output_transform_f4_avx2(
+    m: &[&[f32]],
+    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
+    s: &mut [f32],
+    c: usize,
+    bias: Option<&[f32]>,
+) {
+    output_transform_f4_generic(m, (y, mask), s, c, bias);
+}
+
+#[inline(always)]
+fn output_transform_f4_generic(
+    m: &[&[f32]],
+    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
+    s: &mut [f32],
+    c: usize,
+    bias: Option<&[f32]>,
+) {
+    let (s, tmp) = s[..28 * c].split_at_mut(24 * c);
+    // s = Aᵀ M, stored column by column: s[(col·4 + r)·c ..] = (Aᵀ M)[r][col].
+    for (col, sc) in s.chunks_exact_mut(4 * c).enumerate() {
+        let m: [&[f32]; 6] = std::array::from_fn(|j| m[j * 6 + col]);
+        at_f4(m, sc, c);
+    }
+    let s = &*s;
+    let mut y = y.into_iter();
+    let mut mask = mask.into_iter();
+    for r in 0..4 {
+        // Row r of Y = s A: tmp[q] = Y[r][q].
+        let row: [&[f32]; 6] = std::array::from_fn(|col| &s[(col * 4 + r) * c..][..c]);
+        at_f4(row, tmp, c);
+        for v in tmp.chunks_exact(c) {
+            let (out, mask) = (y.next().flatten(), mask.next().flatten());
+            let Some(out) = out else { continue };
+            let out = &mut out[..c];
+            match (bias, mask) {
+                (Some(bias), _) => out
+                    .iter_mut()
+                    .zip(v)
+                    .zip(&bias[..c])
+                    .for_each(|((o, v), z)| {
+                        o.write((v + z).max(0.0));
+                    }),
+                (None, Some(mask)) => {
+                    out.iter_mut()
+                        .zip(v)
+                        .zip(&mask[..c])
+                        .for_each(|((o, v), y)| {
+                            o.write(if *y > 0.0 { *v } else { 0.0 });
+                        })
+                }
+                (None, None) => out.iter_mut().zip(v).for_each(|(o, v)| {
+                    o.write(*v);
+                }),
+            }
+        }
     }
 }
 
 /// `V = Bᵀ d B` of one 4x4 tile of channel vectors `d` (row-major, each `c` long) into
 /// `v` `[16, c]`, with Lavin and Gray's `Bᵀ` rows (1, 0, -1, 0), (0, 1, 1, 0),
 /// (0, -1, 1, 0), (0, 1, 0, -1). `t` is scratch of `16·c` floats. Every step is one
-/// element-wise pass over channel vectors, so it runs in SIMD lanes.
+/// element-wise pass over channel vectors, so it runs in SIMD lanes (AVX2's 8 where the
+/// CPU has it).
 fn input_transform(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return unsafe { input_transform_avx2(d, v, t, c) };
+    }
+    input_transform_generic(d, v, t, c);
+}
+
+/// [`input_transform`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn input_transform_avx2(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
+    input_transform_generic(d, v, t, c);
+}
+
+#[inline(always)]
+fn input_transform_generic(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
     // t = Bᵀ d, row by row of the result (each a 4-vector of columns).
     let (t, v) = (&mut t[..16 * c], &mut v[..16 * c]);
     let mut rows = t.chunks_exact_mut(4 * c);
@@ -875,6 +1185,7 @@ fn input_transform(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
 }
 
 /// `o = a + b` with `add`, `o = a - b` without, element-wise.
+#[inline(always)]
 fn sum_or_difference(o: &mut [f32], a: &[f32], b: &[f32], add: bool) {
     let pairs = o.iter_mut().zip(a).zip(b);
     if add {
@@ -884,9 +1195,12 @@ fn sum_or_difference(o: &mut [f32], a: &[f32], b: &[f32], add: bool) {
     }
 }
 
-/// The (up to) four output pixels of one tile, row-major, each `C_out` values; `None` past
-/// the map's edge.
-type TilePixels<'a> = [Option<&'a mut [MaybeUninit<f32>]>; 4];
+/// The output pixels of one tile, row-major, each `C_out` values; `None` past the map's
+/// edge (and past the tile's `m²`).
+type Pixels<'a, const N: usize> = [Option<&'a mut [MaybeUninit<f32>]>; N];
+
+/// The pixels of a tile of any [`Winograd`].
+type TilePixels<'a> = Pixels<'a, MAX_PIXELS>;
 
 /// `Y = Aᵀ M A` of one tile's sixteen products `m` (each `c` long; Lavin and Gray's `Aᵀ` rows
 /// (1, 1, 1, 0), (0, 1, -1, -1)) into the 2x2 output pixels `y` (row-major, each `c` long;
@@ -894,7 +1208,36 @@ type TilePixels<'a> = [Option<&'a mut [MaybeUninit<f32>]>; 4];
 /// pixel's `mask` (when given) is not positive. `s` is scratch of `8·c` floats.
 fn output_transform(
     m: &[&[f32]; 16],
-    (y, mask): (TilePixels, [Option<&[f32]>; 4]),
+    (y, mask): (Pixels<4>, [Option<&[f32]>; 4]),
+    s: &mut [f32],
+    c: usize,
+    bias: Option<&[f32]>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return unsafe { output_transform_avx2(m, (y, mask), s, c, bias) };
+    }
+    output_transform_generic(m, (y, mask), s, c, bias);
+}
+
+/// [`output_transform`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn output_transform_avx2(
+    m: &[&[f32]; 16],
+    (y, mask): (Pixels<4>, [Option<&[f32]>; 4]),
+    s: &mut [f32],
+    c: usize,
+    bias: Option<&[f32]>,
+) {
+    output_transform_generic(m, (y, mask), s, c, bias);
+}
+
+#[inline(always)]
+fn output_transform_generic(
+    m: &[&[f32]; 16],
+    (y, mask): (Pixels<4>, [Option<&[f32]>; 4]),
     s: &mut [f32],
     c: usize,
     bias: Option<&[f32]>,
@@ -1186,61 +1529,152 @@ mod tests {
             .fold(0.0f32, |m, (a, b)| m.max((a - b).abs() / scale))
     }
 
-    /// Winograd against the direct loops: the forward (with bias and ReLU) and, with
-    /// [`backward_weights`], the input gradient, plain and through a ReLU's mask, in both
-    /// thread mappings. Odd sizes give partial tiles at the right and bottom edges; with
-    /// per-thread blocks the maps split into several blocks of tile rows.
+    /// Winograd F(2x2, 3x3) and F(4x4, 3x3) against the direct loops: the forward (with bias
+    /// and ReLU) and, with the rotated kernel's weights, the input gradient, plain and
+    /// through a ReLU's mask, in both thread mappings. Sizes that are not multiples of the
+    /// tile give partial tiles at the right and bottom edges; with per-thread blocks the
+    /// maps split into several blocks of tile rows.
     #[test]
-    fn winograd_matches_direct_loops_and_columns() {
-        for (h, w, ci, co) in [
-            (5, 7, 16, 24),
-            (6, 4, 17, 16),
-            (1, 1, 16, 16),
-            (9, 3, 32, 16),
-            (2, 2, 16, 20),
-        ] {
-            let x = values(h * w * ci, 4);
-            let oihw = values(co * ci * 9, 5);
-            let bias = values(co, 6);
-            let u = winograd_weights(&column_weights(&oihw, ci, co), ci, co);
-            let u_back = backward_weights(&u, ci, co);
-            let want_y = direct(&x, [h, w], ci, &oihw, co, &bias);
-            let dy = values(h * w * co, 7);
-            let want_dx = direct_input_gradient(&dy, [h, w], co, &oihw, ci);
-            // A ReLU output for the mask: `values` is negative about half the time.
-            let relu = values(h * w * ci, 10);
-            let masked: Vec<f32> = want_dx
-                .iter()
-                .zip(&relu)
-                .map(|(d, y)| if *y > 0.0 { *d } else { 0.0 })
-                .collect();
-            for shared in [0, usize::MAX] {
-                let bias = Epilogue::BiasRelu(&bias);
-                let y = winograd_mapped(&x, [h, w], [ci, co], &u, bias, shared);
-                let e = max_rel(&y, &want_y);
-                assert!(e < 1e-5, "forward {h}x{w} {ci}->{co}, {shared}: {e}");
-                let dx = winograd_mapped(&dy, [h, w], [co, ci], &u_back, Epilogue::None, shared);
-                let e = max_rel(&dx, &want_dx);
-                assert!(e < 1e-5, "input gradient {h}x{w} {co}->{ci}, {shared}: {e}");
-                let mask = Epilogue::ReluMask(&relu);
-                let dx = winograd_mapped(&dy, [h, w], [co, ci], &u_back, mask, shared);
-                assert!(dx.iter().zip(&relu).all(|(d, y)| *y > 0.0 || *d == 0.0));
-                let e = max_rel(&dx, &masked);
-                assert!(
-                    e < 1e-5,
-                    "masked gradient {h}x{w} {co}->{ci}, {shared}: {e}"
-                );
+    fn winograd_matches_direct_loops() {
+        for kind in [&F2, &F4] {
+            for (h, w, ci, co) in [
+                (5, 7, 16, 24),
+                (6, 4, 17, 16),
+                (1, 1, 16, 16),
+                (9, 3, 32, 16),
+                (2, 2, 16, 20),
+                (11, 13, 16, 16),
+            ] {
+                let x = values(h * w * ci, 4);
+                let oihw = values(co * ci * 9, 5);
+                let bias = values(co, 6);
+                let u = winograd_weights(&column_weights(&oihw, ci, co), ci, co, kind);
+                let back = rotated_column_weights(&oihw, ci, co);
+                let u_back = winograd_weights(&back, co, ci, kind);
+                let want_y = direct(&x, [h, w], ci, &oihw, co, &bias);
+                let dy = values(h * w * co, 7);
+                let want_dx = direct_input_gradient(&dy, [h, w], co, &oihw, ci);
+                // A ReLU output for the mask: `values` is negative about half the time.
+                let relu = values(h * w * ci, 10);
+                let masked: Vec<f32> = want_dx
+                    .iter()
+                    .zip(&relu)
+                    .map(|(d, y)| if *y > 0.0 { *d } else { 0.0 })
+                    .collect();
+                let m = kind.m;
+                for shared in [0, usize::MAX] {
+                    let bias = Epilogue::BiasRelu(&bias);
+                    let y = winograd_mapped(&x, [h, w], [ci, co], (&u, kind), bias, shared);
+                    let e = max_rel(&y, &want_y);
+                    assert!(e < 1e-5, "F{m} forward {h}x{w} {ci}->{co}, {shared}: {e}");
+                    let back = (&u_back[..], kind);
+                    let dx = winograd_mapped(&dy, [h, w], [co, ci], back, Epilogue::None, shared);
+                    let e = max_rel(&dx, &want_dx);
+                    assert!(
+                        e < 1e-5,
+                        "F{m} input gradient {h}x{w} {co}->{ci}, {shared}: {e}"
+                    );
+                    let mask = Epilogue::ReluMask(&relu);
+                    let dx = winograd_mapped(&dy, [h, w], [co, ci], back, mask, shared);
+                    assert!(dx.iter().zip(&relu).all(|(d, y)| *y > 0.0 || *d == 0.0));
+                    let e = max_rel(&dx, &masked);
+                    assert!(
+                        e < 1e-5,
+                        "F{m} masked gradient {h}x{w} {co}->{ci}, {shared}: {e}"
+                    );
+                }
             }
         }
         // The public entry point takes the same path as one of the two.
         let (ci, co) = (16, 16);
         let x = values(9 * 7 * ci, 8);
-        let u = winograd_weights(&values(9 * ci * co, 9), ci, co);
+        let u = winograd_weights(&values(9 * ci * co, 9), ci, co, &F4);
         let none = Epilogue::None;
         assert_eq!(
-            conv3x3_winograd(&x, [9, 7], [ci, co], &u, none),
-            winograd_mapped(&x, [9, 7], [ci, co], &u, none, usize::MAX)
+            conv3x3_winograd(&x, [9, 7], [ci, co], (&u, &F4), none),
+            winograd_mapped(&x, [9, 7], [ci, co], (&u, &F4), none, usize::MAX)
         );
+    }
+
+    /// `Bᵀ d B` and `Aᵀ M A` by the matrices of Lavin and Gray (the [`Winograd`]
+    /// constants), in float64, per channel.
+    fn by_matrices(mat: &[f32], rows: usize, a: usize, x: &[Vec<f32>], c: usize) -> Vec<Vec<f64>> {
+        // Y = mat · X · matᵀ for each channel, X a x a.
+        let mut y = vec![vec![0.0f64; c]; rows * rows];
+        for ch in 0..c {
+            for r in 0..rows {
+                for q in 0..rows {
+                    let mut acc = 0.0f64;
+                    for i in 0..a {
+                        for j in 0..a {
+                            acc += mat[r * a + i] as f64
+                                * x[i * a + j][ch] as f64
+                                * mat[q * a + j] as f64;
+                        }
+                    }
+                    y[r * rows + q][ch] = acc;
+                }
+            }
+        }
+        y
+    }
+
+    /// The written-out transforms of F(2x2, 3x3) and F(4x4, 3x3) against Lavin and Gray's
+    /// matrices (`Bᵀ`, `Aᵀ` of [`F2`] and [`F4`]).
+    #[test]
+    fn transforms_match_the_matrices() {
+        let c = 5;
+        for kind in [&F2, &F4] {
+            let (m, a) = (kind.m, kind.alpha());
+            let x: Vec<Vec<f32>> = (0..a * a).map(|k| values(c, 20 + k)).collect();
+            let want_v = by_matrices(kind.bt, a, a, &x, c);
+            let d: Vec<&[f32]> = x.iter().map(|v| &v[..]).collect();
+            let mut v = vec![0.0f32; a * a * c];
+            let mut t = vec![0.0f32; a * a * c];
+            if m == 2 {
+                input_transform(d[..].try_into().expect("16"), &mut v, &mut t, c);
+            } else {
+                input_transform_f4(&d, &mut v, &mut t, c);
+            }
+            for (k, want) in want_v.iter().enumerate() {
+                for (ch, w) in want.iter().enumerate() {
+                    let got = v[k * c + ch] as f64;
+                    assert!((got - w).abs() < 1e-4, "F{m} V[{k}][{ch}]: {got} vs {w}");
+                }
+            }
+            let want_y = by_matrices(kind.at, m, a, &x, c);
+            let mut y = vec![MaybeUninit::new(f32::NAN); m * m * c];
+            let mut pixels: TilePixels = std::array::from_fn(|_| None);
+            for (p, chunk) in y.chunks_exact_mut(c).enumerate() {
+                pixels[p] = Some(chunk);
+            }
+            let mut s = vec![0.0f32; (m * a + m) * c];
+            if m == 2 {
+                let [p0, p1, p2, p3, ..] = pixels;
+                let d: &[&[f32]; 16] = d[..].try_into().expect("16");
+                output_transform(d, ([p0, p1, p2, p3], [None; 4]), &mut s, c, None);
+            } else {
+                output_transform_f4(&d, (pixels, [None; MAX_PIXELS]), &mut s, c, None);
+            }
+            for (k, want) in want_y.iter().enumerate() {
+                for (ch, w) in want.iter().enumerate() {
+                    // SAFETY: `y` was made initialised (NaN); a pixel left unwritten fails.
+                    let got = unsafe { y[k * c + ch].assume_init() } as f64;
+                    assert!((got - w).abs() < 1e-4, "F{m} Y[{k}][{ch}]: {got} vs {w}");
+                }
+            }
+        }
+    }
+
+    /// The algorithm per layer: VGG16's 64- to 256-channel layers F(4x4, 3x3), its
+    /// 512-channel ones F(2x2, 3x3), the first the column formulation.
+    #[test]
+    fn winograd_choice_per_layer() {
+        assert!(winograd_for(3, 64).is_none());
+        assert_eq!(winograd_for(64, 64).map(|k| k.m), Some(4));
+        assert_eq!(winograd_for(128, 256).map(|k| k.m), Some(4));
+        assert_eq!(winograd_for(256, 512).map(|k| k.m), Some(2));
+        assert_eq!(winograd_for(512, 512).map(|k| k.m), Some(2));
     }
 
     /// The lane-wise sum against a plain float64 sum, on lengths with remainders.
