@@ -830,12 +830,7 @@ fn winograd_tiles(
                 d[dy * a + dx] = &x[s..s + ci];
             }
         }
-        if m == 2 {
-            let d: &[&[f32]; 16] = d[..16].try_into().expect("16 slots");
-            input_transform(d, vt, t, ci);
-        } else {
-            input_transform_f4(&d[..n], vt, t, ci);
-        }
+        input_transform(kind, &d[..n], vt, t, ci);
     };
     // `U_ξ` as the `[C_in, C_out]` right-hand side of product ξ.
     let weights = |xi: usize| &u[xi * ci * co..][..ci * co];
@@ -974,39 +969,78 @@ fn write_tile_row<'a>(
                 &[]
             }
         });
-        if m == 2 {
-            let [y0, y1, y2, y3, ..] = y;
-            let [k0, k1, k2, k3, ..] = mask;
-            let mt: &[&[f32]; 16] = mt[..16].try_into().expect("16 products");
-            output_transform(mt, ([y0, y1, y2, y3], [k0, k1, k2, k3]), s, co, bias);
-        } else {
-            output_transform_f4(&mt[..kind.products()], (y, mask), s, co, bias);
+        output_transform(kind, &mt[..kind.products()], (y, mask), s, (co, bias));
+    }
+}
+
+/// `V = Bᵀ d B` of one α x α tile of channel vectors `d` (row-major, each `c` long) into `v`
+/// `[α², c]` for `kind`; `t` is scratch of `α²·c` floats. The transforms are written out
+/// per algorithm (the tests check them against [`Winograd`]'s matrices): every step is one
+/// pass over channel vectors, in AVX2's lanes where the CPU has them.
+fn input_transform(kind: &Winograd, d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return unsafe { input_transform_avx2(kind, d, v, t, c) };
+    }
+    input_transform_generic(kind, d, v, t, c);
+}
+
+/// [`input_transform`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn input_transform_avx2(kind: &Winograd, d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    input_transform_generic(kind, d, v, t, c);
+}
+
+#[inline(always)]
+fn input_transform_generic(kind: &Winograd, d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    if kind.m == 2 {
+        input_transform_f2(d, v, t, c);
+    } else {
+        input_transform_f4(d, v, t, c);
+    }
+}
+
+/// [`input_transform`] for F(2x2, 3x3), with Lavin and Gray's `Bᵀ` rows (1, 0, -1, 0),
+/// (0, 1, 1, 0), (0, -1, 1, 0), (0, 1, 0, -1): each entry a sum or a difference of two.
+#[inline(always)]
+fn input_transform_f2(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+    // t = Bᵀ d, row by row of the result (each a 4-vector of columns).
+    let (t, v) = (&mut t[..16 * c], &mut v[..16 * c]);
+    let mut rows = t.chunks_exact_mut(4 * c);
+    for (r, (p, q)) in [(0, 2), (1, 2), (2, 1), (1, 3)].into_iter().enumerate() {
+        let tr = rows.next().expect("four rows");
+        for col in 0..4 {
+            let (a, b) = (&d[p * 4 + col][..c], &d[q * 4 + col][..c]);
+            sum_or_difference(&mut tr[col * c..][..c], a, b, r == 1);
+        }
+    }
+    // V = t B: the same combination along each row.
+    for (tr, vr) in t.chunks_exact(4 * c).zip(v.chunks_exact_mut(4 * c)) {
+        let col = |k: usize| &tr[k * c..][..c];
+        for (k, o) in vr.chunks_exact_mut(c).enumerate() {
+            let (p, q) = [(0, 2), (1, 2), (2, 1), (1, 3)][k];
+            sum_or_difference(o, col(p), col(q), k == 1);
         }
     }
 }
 
-/// `V = Bᵀ d B` of one 6x6 tile of channel vectors `d` (row-major, each `c` long) into `v`
-/// `[36, c]` for F(4x4, 3x3) ([`F4`]'s `Bᵀ`, written out); `t` is scratch of `36·c` floats.
-/// Each 1-D step reads six channel vectors and writes six in one pass, in AVX2's lanes
-/// where the CPU has them.
-fn input_transform_f4(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { input_transform_f4_avx2(d, v, t, c) };
-    }
-    input_transform_f4_generic(d, v, t, c);
-}
-
-/// [`input_transform_f4`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn input_transform_f4_avx2(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
-    input_transform_f4_generic(d, v, t, c);
-}
-
+/// `o = a + b` with `add`, `o = a - b` without, element-wise.
 #[inline(always)]
-fn input_transform_f4_generic(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
+fn sum_or_difference(o: &mut [f32], a: &[f32], b: &[f32], add: bool) {
+    let pairs = o.iter_mut().zip(a).zip(b);
+    if add {
+        pairs.for_each(|((o, a), b)| *o = a + b);
+    } else {
+        pairs.for_each(|((o, a), b)| *o = a - b);
+    }
+}
+
+/// [`input_transform`] for F(4x4, 3x3): each 1-D step reads six channel vectors and writes
+/// six in one pass ([`bt_f4`]).
+#[inline(always)]
+fn input_transform_f4(d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
     // t = Bᵀ d, stored column by column: t[(col·6 + r)·c ..] = (Bᵀ d)[r][col].
     for (col, tc) in t[..36 * c].chunks_exact_mut(6 * c).enumerate() {
         let d: [&[f32]; 6] = std::array::from_fn(|k| d[k * 6 + col]);
@@ -1060,256 +1094,115 @@ fn at_f4(m: [&[f32]; 6], o: &mut [f32], c: usize) {
     }
 }
 
-/// `Y = Aᵀ M A` of one tile's 36 products `m` (each `c` long) into its 4x4 output pixels
-/// `y` (row-major; `None` past the map's edge) for F(4x4, 3x3) ([`F4`]'s `Aᵀ`, written
-/// out), plus `bias` and the ReLU when given, or zero where the pixel's `mask` (when given)
-/// is not positive. `s` is scratch of `28·c` floats.
-fn output_transform_f4(
-    m: &[&[f32]],
-    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
-    s: &mut [f32],
-    c: usize,
-    bias: Option<&[f32]>,
-) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { output_transform_f4_avx2(m, (y, mask), s, c, bias) };
-    }
-    output_transform_f4_generic(m, (y, mask), s, c, bias);
-}
-
-/// [`output_transform_f4`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn output_transform_f4_avx2(
-    m: &[&[f32]],
-    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
-    s: &mut [f32],
-    c: usize,
-    bias: Option<&[f32]>,
-) {
-    output_transform_f4_generic(m, (y, mask), s, c, bias);
-}
-
-#[inline(always)]
-fn output_transform_f4_generic(
-    m: &[&[f32]],
-    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
-    s: &mut [f32],
-    c: usize,
-    bias: Option<&[f32]>,
-) {
-    let (s, tmp) = s[..28 * c].split_at_mut(24 * c);
-    // s = Aᵀ M, stored column by column: s[(col·4 + r)·c ..] = (Aᵀ M)[r][col].
-    for (col, sc) in s.chunks_exact_mut(4 * c).enumerate() {
-        let m: [&[f32]; 6] = std::array::from_fn(|j| m[j * 6 + col]);
-        at_f4(m, sc, c);
-    }
-    let s = &*s;
-    let mut y = y.into_iter();
-    let mut mask = mask.into_iter();
-    for r in 0..4 {
-        // Row r of Y = s A: tmp[q] = Y[r][q].
-        let row: [&[f32]; 6] = std::array::from_fn(|col| &s[(col * 4 + r) * c..][..c]);
-        at_f4(row, tmp, c);
-        for v in tmp.chunks_exact(c) {
-            let (out, mask) = (y.next().flatten(), mask.next().flatten());
-            let Some(out) = out else { continue };
-            let out = &mut out[..c];
-            match (bias, mask) {
-                (Some(bias), _) => out
-                    .iter_mut()
-                    .zip(v)
-                    .zip(&bias[..c])
-                    .for_each(|((o, v), z)| {
-                        o.write((v + z).max(0.0));
-                    }),
-                (None, Some(mask)) => {
-                    out.iter_mut()
-                        .zip(v)
-                        .zip(&mask[..c])
-                        .for_each(|((o, v), y)| {
-                            o.write(if *y > 0.0 { *v } else { 0.0 });
-                        })
-                }
-                (None, None) => out.iter_mut().zip(v).for_each(|(o, v)| {
-                    o.write(*v);
-                }),
-            }
-        }
-    }
-}
-
-/// `V = Bᵀ d B` of one 4x4 tile of channel vectors `d` (row-major, each `c` long) into
-/// `v` `[16, c]`, with Lavin and Gray's `Bᵀ` rows (1, 0, -1, 0), (0, 1, 1, 0),
-/// (0, -1, 1, 0), (0, 1, 0, -1). `t` is scratch of `16·c` floats. Every step is one
-/// element-wise pass over channel vectors, so it runs in SIMD lanes (AVX2's 8 where the
-/// CPU has it).
-fn input_transform(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { input_transform_avx2(d, v, t, c) };
-    }
-    input_transform_generic(d, v, t, c);
-}
-
-/// [`input_transform`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn input_transform_avx2(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
-    input_transform_generic(d, v, t, c);
-}
-
-#[inline(always)]
-fn input_transform_generic(d: &[&[f32]; 16], v: &mut [f32], t: &mut [f32], c: usize) {
-    // t = Bᵀ d, row by row of the result (each a 4-vector of columns).
-    let (t, v) = (&mut t[..16 * c], &mut v[..16 * c]);
-    let mut rows = t.chunks_exact_mut(4 * c);
-    for (r, (p, q)) in [(0, 2), (1, 2), (2, 1), (1, 3)].into_iter().enumerate() {
-        let tr = rows.next().expect("four rows");
-        for col in 0..4 {
-            let (a, b) = (&d[p * 4 + col][..c], &d[q * 4 + col][..c]);
-            sum_or_difference(&mut tr[col * c..][..c], a, b, r == 1);
-        }
-    }
-    // V = t B: the same combination along each row.
-    for (tr, vr) in t.chunks_exact(4 * c).zip(v.chunks_exact_mut(4 * c)) {
-        let col = |k: usize| &tr[k * c..][..c];
-        for (k, o) in vr.chunks_exact_mut(c).enumerate() {
-            let (p, q) = [(0, 2), (1, 2), (2, 1), (1, 3)][k];
-            sum_or_difference(o, col(p), col(q), k == 1);
-        }
-    }
-}
-
-/// `o = a + b` with `add`, `o = a - b` without, element-wise.
-#[inline(always)]
-fn sum_or_difference(o: &mut [f32], a: &[f32], b: &[f32], add: bool) {
-    let pairs = o.iter_mut().zip(a).zip(b);
-    if add {
-        pairs.for_each(|((o, a), b)| *o = a + b);
-    } else {
-        pairs.for_each(|((o, a), b)| *o = a - b);
-    }
-}
-
 /// The output pixels of one tile, row-major, each `C_out` values; `None` past the map's
 /// edge (and past the tile's `m²`).
-type Pixels<'a, const N: usize> = [Option<&'a mut [MaybeUninit<f32>]>; N];
+type TilePixels<'a> = [Option<&'a mut [MaybeUninit<f32>]>; MAX_PIXELS];
 
-/// The pixels of a tile of any [`Winograd`].
-type TilePixels<'a> = Pixels<'a, MAX_PIXELS>;
-
-/// `Y = Aᵀ M A` of one tile's sixteen products `m` (each `c` long; Lavin and Gray's `Aᵀ` rows
-/// (1, 1, 1, 0), (0, 1, -1, -1)) into the 2x2 output pixels `y` (row-major, each `c` long;
-/// `None` past the map's edge), plus `bias` and the ReLU when given, or zero where the
-/// pixel's `mask` (when given) is not positive. `s` is scratch of `8·c` floats.
+/// `Y = Aᵀ M A` of one tile's α² products `m` (each `c` long) into its m x m output pixels
+/// `y` (row-major; `None` past the map's edge) for `kind`, plus `bias` and the ReLU when
+/// given, or zero where the pixel's `mask` (when given) is not positive ([`write_pixel`]).
+/// `s` is scratch of `(m·α + m)·c` floats. Written out per algorithm, as
+/// [`input_transform`].
 fn output_transform(
-    m: &[&[f32]; 16],
-    (y, mask): (Pixels<4>, [Option<&[f32]>; 4]),
+    kind: &Winograd,
+    m: &[&[f32]],
+    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
     s: &mut [f32],
-    c: usize,
-    bias: Option<&[f32]>,
+    (c, bias): (usize, Option<&[f32]>),
 ) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { output_transform_avx2(m, (y, mask), s, c, bias) };
+        return unsafe { output_transform_avx2(kind, m, (y, mask), s, (c, bias)) };
     }
-    output_transform_generic(m, (y, mask), s, c, bias);
+    output_transform_generic(kind, m, (y, mask), s, (c, bias));
 }
 
 /// [`output_transform`] compiled for AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn output_transform_avx2(
-    m: &[&[f32]; 16],
-    (y, mask): (Pixels<4>, [Option<&[f32]>; 4]),
+    kind: &Winograd,
+    m: &[&[f32]],
+    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
     s: &mut [f32],
-    c: usize,
-    bias: Option<&[f32]>,
+    (c, bias): (usize, Option<&[f32]>),
 ) {
-    output_transform_generic(m, (y, mask), s, c, bias);
+    output_transform_generic(kind, m, (y, mask), s, (c, bias));
 }
 
 #[inline(always)]
 fn output_transform_generic(
-    m: &[&[f32]; 16],
-    (y, mask): (Pixels<4>, [Option<&[f32]>; 4]),
+    kind: &Winograd,
+    m: &[&[f32]],
+    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
     s: &mut [f32],
-    c: usize,
-    bias: Option<&[f32]>,
+    (c, bias): (usize, Option<&[f32]>),
 ) {
-    let s = &mut s[..8 * c];
-    let row = |r: usize, k: usize| &m[r * 4 + k][..c];
-    // s = Aᵀ M (2 x 4 vectors).
-    for (k, o) in s.chunks_exact_mut(c).enumerate() {
-        let (r, col) = (k / 4, k % 4);
-        let (a, b, d) = if r == 0 {
-            (row(0, col), row(1, col), row(2, col))
+    let (mo, a) = (kind.m, kind.alpha());
+    let (s, tmp) = s[..(mo * a + mo) * c].split_at_mut(mo * a * c);
+    // s = Aᵀ M, stored column by column: s[(col·m + r)·c ..] = (Aᵀ M)[r][col].
+    for (col, sc) in s.chunks_exact_mut(mo * c).enumerate() {
+        let column = |j: usize| m[j * a + col];
+        if mo == 2 {
+            at_f2(std::array::from_fn(column), sc, c);
         } else {
-            (row(1, col), row(2, col), row(3, col))
-        };
-        if r == 0 {
-            o.iter_mut()
-                .zip(a)
-                .zip(b)
-                .zip(d)
-                .for_each(|(((o, a), b), d)| *o = a + b + d);
-        } else {
-            o.iter_mut()
-                .zip(a)
-                .zip(b)
-                .zip(d)
-                .for_each(|(((o, a), b), d)| *o = a - b - d);
+            at_f4(std::array::from_fn(column), sc, c);
         }
     }
-    // Y = s A.
-    for (k, (out, mask)) in y.into_iter().zip(mask).enumerate() {
-        let Some(out) = out else { continue };
-        let (r, col) = (k / 2, k % 2);
-        let sv = |j: usize| &s[(r * 4 + j) * c..][..c];
-        let (a, b, d) = if col == 0 {
-            (sv(0), sv(1), sv(2))
+    let s = &*s;
+    let mut y = y.into_iter();
+    let mut mask = mask.into_iter();
+    for r in 0..mo {
+        // Row r of Y = s A: tmp[q] = Y[r][q].
+        let row = |col: usize| &s[(col * mo + r) * c..][..c];
+        if mo == 2 {
+            at_f2(std::array::from_fn(row), tmp, c);
         } else {
-            (sv(1), sv(2), sv(3))
-        };
-        let sgn = if col == 0 { 1.0 } else { -1.0 };
-        let out = &mut out[..c];
-        match bias {
-            Some(bias) => out
-                .iter_mut()
-                .zip(a)
-                .zip(b)
-                .zip(d)
-                .zip(&bias[..c])
-                .for_each(|((((o, a), b), d), z)| {
-                    let v = if col == 0 { a + b + d } else { a - b - d };
-                    o.write((v + z).max(0.0));
-                }),
-            None => match mask {
-                Some(mask) => out
-                    .iter_mut()
-                    .zip(a)
-                    .zip(b)
-                    .zip(d)
-                    .zip(&mask[..c])
-                    .for_each(|((((o, a), b), d), y)| {
-                        let v = a + sgn * (b + d);
-                        o.write(if *y > 0.0 { v } else { 0.0 });
-                    }),
-                None => out
-                    .iter_mut()
-                    .zip(a)
-                    .zip(b)
-                    .zip(d)
-                    .for_each(|(((o, a), b), d)| {
-                        o.write(a + sgn * (b + d));
-                    }),
-            },
+            at_f4(std::array::from_fn(row), tmp, c);
         }
+        for v in tmp.chunks_exact(c) {
+            if let Some(out) = y.next().flatten() {
+                write_pixel(out, v, bias, mask.next().flatten());
+            } else {
+                mask.next();
+            }
+        }
+    }
+}
+
+/// `o[k] = Σ_j Aᵀ[k][j] m[j]` for F(2x2, 3x3)'s `Aᵀ` rows (1, 1, 1, 0), (0, 1, -1, -1),
+/// element-wise over `c` channels; `o` holds the two results one after another.
+#[inline(always)]
+fn at_f2(m: [&[f32]; 4], o: &mut [f32], c: usize) {
+    let [m0, m1, m2, m3] = m.map(|m| &m[..c]);
+    let (o0, o1) = o[..2 * c].split_at_mut(c);
+    for j in 0..c {
+        o0[j] = m0[j] + m1[j] + m2[j];
+        o1[j] = m1[j] - m2[j] - m3[j];
+    }
+}
+
+/// One output pixel `out` from its value `v`: plus `bias` and the ReLU when given, else
+/// zero where `mask` (when given) is not positive, else `v`.
+#[inline(always)]
+fn write_pixel(
+    out: &mut [MaybeUninit<f32>],
+    v: &[f32],
+    bias: Option<&[f32]>,
+    mask: Option<&[f32]>,
+) {
+    let out = &mut out[..v.len()];
+    match (bias, mask) {
+        (Some(bias), _) => out.iter_mut().zip(v).zip(bias).for_each(|((o, v), z)| {
+            o.write((v + z).max(0.0));
+        }),
+        (None, Some(mask)) => out.iter_mut().zip(v).zip(mask).for_each(|((o, v), y)| {
+            o.write(if *y > 0.0 { *v } else { 0.0 });
+        }),
+        (None, None) => out.iter_mut().zip(v).for_each(|(o, v)| {
+            o.write(*v);
+        }),
     }
 }
 
@@ -1631,11 +1524,7 @@ mod tests {
             let d: Vec<&[f32]> = x.iter().map(|v| &v[..]).collect();
             let mut v = vec![0.0f32; a * a * c];
             let mut t = vec![0.0f32; a * a * c];
-            if m == 2 {
-                input_transform(d[..].try_into().expect("16"), &mut v, &mut t, c);
-            } else {
-                input_transform_f4(&d, &mut v, &mut t, c);
-            }
+            input_transform(kind, &d, &mut v, &mut t, c);
             for (k, want) in want_v.iter().enumerate() {
                 for (ch, w) in want.iter().enumerate() {
                     let got = v[k * c + ch] as f64;
@@ -1649,13 +1538,7 @@ mod tests {
                 pixels[p] = Some(chunk);
             }
             let mut s = vec![0.0f32; (m * a + m) * c];
-            if m == 2 {
-                let [p0, p1, p2, p3, ..] = pixels;
-                let d: &[&[f32]; 16] = d[..].try_into().expect("16");
-                output_transform(d, ([p0, p1, p2, p3], [None; 4]), &mut s, c, None);
-            } else {
-                output_transform_f4(&d, (pixels, [None; MAX_PIXELS]), &mut s, c, None);
-            }
+            output_transform(kind, &d, (pixels, [None; MAX_PIXELS]), &mut s, (c, None));
             for (k, want) in want_y.iter().enumerate() {
                 for (ch, w) in want.iter().enumerate() {
                     // SAFETY: `y` was made initialised (NaN); a pixel left unwritten fails.
