@@ -353,24 +353,29 @@ impl VggCpu {
                 // gradient `sign(x - y) / count`.
                 let inv = 1.0 / counts[t].max(1) as f32;
                 let chunk = 1 << 14;
+                let sum_of = |x: &[f32], y: &[f32], mut g: Option<&mut [f32]>| {
+                    let mut acc = 0.0f64;
+                    for (j, (p, q)) in x.iter().zip(y).enumerate() {
+                        acc += (p - q).abs() as f64;
+                        if let Some(g) = g.as_deref_mut() {
+                            g[j] = sign(p - q) * inv;
+                        }
+                    }
+                    acc
+                };
                 sums[t] += if keep[0] || keep[1] {
                     let mut g = vec![0.0f32; x.len()];
                     let s = g
                         .par_chunks_mut(chunk)
                         .zip(x.par_chunks(chunk).zip(y.par_chunks(chunk)))
-                        .map(|(g, (x, y))| {
-                            for ((g, p), q) in g.iter_mut().zip(x).zip(y) {
-                                *g = sign(p - q) * inv;
-                            }
-                            l1_distance(x, y)
-                        })
+                        .map(|(g, (x, y))| sum_of(x, y, Some(g)))
                         .sum::<f64>();
                     signs.push(g);
                     s
                 } else {
                     x.par_chunks(chunk)
                         .zip(y.par_chunks(chunk))
-                        .map(|(x, y)| l1_distance(x, y))
+                        .map(|(x, y)| sum_of(x, y, None))
                         .sum::<f64>()
                 };
             }
@@ -462,30 +467,6 @@ impl VggCpu {
         }
         Some(out)
     }
-}
-
-/// `Σ |x - y|`, in sixteen float32 lanes (so that it runs in SIMD registers) over runs of
-/// 256 values, each run's total added in float64.
-fn l1_distance(x: &[f32], y: &[f32]) -> f64 {
-    const LANES: usize = 16;
-    let mut total = 0.0f64;
-    for (x, y) in x.chunks(256).zip(y.chunks(256)) {
-        let mut lanes = [0.0f32; LANES];
-        let (xv, yv) = (x.chunks_exact(LANES), y.chunks_exact(LANES));
-        let tail: f32 = xv
-            .remainder()
-            .iter()
-            .zip(yv.remainder())
-            .map(|(p, q)| (p - q).abs())
-            .sum();
-        for (x, y) in xv.zip(yv) {
-            for ((l, p), q) in lanes.iter_mut().zip(x).zip(y) {
-                *l += (p - q).abs();
-            }
-        }
-        total += lanes.iter().map(|&l| l as f64).sum::<f64>() + tail as f64;
-    }
-    total
 }
 
 /// `sign(x)` with `sign(0) = 0` (the subgradient burn's `abs` uses).
@@ -1558,20 +1539,6 @@ mod tests {
         assert_eq!(winograd_for(128, 256).map(|k| k.m), Some(4));
         assert_eq!(winograd_for(256, 512).map(|k| k.m), Some(2));
         assert_eq!(winograd_for(512, 512).map(|k| k.m), Some(2));
-    }
-
-    /// The lane-wise sum against a plain float64 sum, on lengths with remainders.
-    #[test]
-    fn l1_distance_matches_a_plain_sum() {
-        for n in [0, 5, 16, 300, 1000] {
-            let (x, y) = (values(n, 14), values(n, 15));
-            let want: f64 = x.iter().zip(&y).map(|(p, q)| (p - q).abs() as f64).sum();
-            let got = l1_distance(&x, &y);
-            assert!(
-                (got - want).abs() <= 1e-5 * want.max(1.0),
-                "{n}: {got} vs {want}"
-            );
-        }
     }
 
     #[test]
