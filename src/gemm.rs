@@ -79,15 +79,34 @@ pub fn matmul_uninit(
 ) {
     let [m, n, _] = mnk;
     assert_eq!(dst.len(), m * n, "matmul_uninit: dst is not m x n");
+    matmul_into_uninit(mnk, dst, [n, 1], lhs, lhs_strides, rhs, rhs_strides);
+}
+
+/// [`matmul_uninit`] with explicit `dst` strides: the `m·n` values they address are
+/// written and none is read; the others are left as they were (a block of columns of a
+/// larger matrix, say).
+///
+/// # Panics
+/// When a stride addresses past the end of its slice.
+pub fn matmul_into_uninit(
+    mnk: [usize; 3],
+    dst: &mut [MaybeUninit<f32>],
+    dst_strides: [usize; 2],
+    lhs: &[f32],
+    lhs_strides: [usize; 2],
+    rhs: &[f32],
+    rhs_strides: [usize; 2],
+) {
     // SAFETY: `f32` and `MaybeUninit<f32>` have one layout; `product` writes the `m·n`
-    // addressed values (all of `dst`) without reading them when `accumulate` is false.
+    // addressed values (inside `dst`, which it asserts) without reading them when
+    // `accumulate` is false.
     let (ptr, len) = (dst.as_mut_ptr().cast::<f32>(), dst.len());
     unsafe {
         product_raw(
             true,
             mnk,
             (ptr, len),
-            [n, 1],
+            dst_strides,
             false,
             lhs,
             lhs_strides,

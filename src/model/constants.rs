@@ -103,3 +103,11 @@ pub const MIN_TASK_VALUES: usize = 1 << 14;
 pub fn planes_per_task(plane: usize) -> usize {
     (MIN_TASK_VALUES / plane.max(1)).max(1)
 }
+
+/// Values of a transposed convolution's column matrix (`C_out·k_h·k_w` rows by the pixels of
+/// some input rows) that one block of its host passes forms and uses while it is still in
+/// cache: 2^18 floats, 1 MiB, half the L2 of one core of the 2-core machine. As one matrix
+/// over the whole input, the `paper` decoders' two largest layers made 33 and 46 MB columns
+/// and their products ran at 23-64 GFLOP/s, against 180-270 for the layers whose columns fit
+/// (a timing of each layer's passes, 2026-12-05).
+pub const COLUMN_BLOCK: usize = 1 << 18;

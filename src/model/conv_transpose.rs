@@ -43,8 +43,8 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvTransposeOptions;
 use rayon::prelude::*;
 
-use super::constants::planes_per_task;
-use crate::gemm::{matmul, matmul_uninit};
+use super::constants::{COLUMN_BLOCK, planes_per_task};
+use crate::gemm::{matmul, matmul_into_uninit};
 use crate::splat::backend::{HostIo, floats};
 
 /// Stride and padding of a transposed convolution (dilation 1, one group, no output
@@ -214,9 +214,15 @@ fn host_forward(x: &[f32], weight: &[f32], d: Dims, p: &ConvTParams) -> Vec<f32>
     host_forward_then(x, weight, d, p, |_, _| {})
 }
 
-/// [`host_forward`], then `epilogue(channel, plane)` on every output plane in the task that
-/// scattered it, while it is still in cache ([`super::conv_t_bias_act`]'s bias and
-/// activation).
+/// [`host_forward`], then `epilogue(channel, plane)` on every output plane (for
+/// [`super::conv_t_bias_act`]'s bias and activation): in the task that scattered it, while
+/// it is still in cache, when the column matrix is one block; in a pass of its own after
+/// the last block otherwise.
+///
+/// The input is taken in blocks of [`input_rows_per_block`] rows (all of it for the small
+/// layers): per block, `col = Wᵀ · X[:, block]`, then every output row the block reaches
+/// gets its share added (neighbouring blocks reach some output rows both), so the blocks
+/// run one after another into the zeroed output; the whole-input case writes instead.
 pub(super) fn host_forward_then(
     x: &[f32],
     weight: &[f32],
@@ -224,38 +230,87 @@ pub(super) fn host_forward_then(
     p: &ConvTParams,
     epilogue: impl Fn(usize, &mut [f32]) + Sync,
 ) -> Vec<f32> {
+    host_forward_blocked(
+        x,
+        weight,
+        d,
+        p,
+        input_rows_per_block(d, COLUMN_BLOCK),
+        epilogue,
+    )
+}
+
+/// Input rows per block of the host passes: as many as keep the block's column matrix
+/// within `block` values, at least one and at most the input's height.
+fn input_rows_per_block(d: Dims, block: usize) -> usize {
+    (block / (d.q() * d.w).max(1)).clamp(1, d.h.max(1))
+}
+
+/// [`host_forward_then`] with `rows` input rows per block (the tests set it small).
+fn host_forward_blocked(
+    x: &[f32],
+    weight: &[f32],
+    d: Dims,
+    p: &ConvTParams,
+    rows: usize,
+    epilogue: impl Fn(usize, &mut [f32]) + Sync,
+) -> Vec<f32> {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
+    let whole = rows >= d.h;
     let mut out = vec![0.0f32; d.n * d.co * plane];
-    with_columns(q * pp, |col| {
+    with_columns(q * rows * d.w, |col| {
         for b in 0..d.n {
             let xb = &x[b * d.ci * pp..(b + 1) * d.ci * pp];
-            // col [q, P] = Wᵀ [q, C_in] · X [C_in, P]; W is [C_in, q] row-major.
-            matmul(
-                [q, pp, d.ci],
-                col,
-                [pp, 1],
-                false,
-                weight,
-                [1, q],
-                xb,
-                [pp, 1],
-            );
             let ob = &mut out[b * d.co * plane..(b + 1) * d.co * plane];
-            ob.par_chunks_mut(plane)
-                .enumerate()
-                .with_min_len(planes_per_task(plane))
-                .for_each(|(c, o)| {
-                    col2im_plane(col, o, c, d, p);
-                    epilogue(c, o);
-                });
+            for r0 in (0..d.h).step_by(rows) {
+                let r1 = (r0 + rows).min(d.h);
+                let n = (r1 - r0) * d.w;
+                let col = &mut col[..q * n];
+                // col [q, n] = Wᵀ [q, C_in] · X[:, block] [C_in, n]; W is [C_in, q]
+                // row-major, the block's pixels are contiguous in every input plane.
+                matmul(
+                    [q, n, d.ci],
+                    col,
+                    [n, 1],
+                    false,
+                    weight,
+                    [1, q],
+                    &xb[r0 * d.w..],
+                    [pp, 1],
+                );
+                let col = &*col;
+                ob.par_chunks_mut(plane)
+                    .enumerate()
+                    .with_min_len(planes_per_task(plane))
+                    .for_each(|(c, o)| {
+                        col2im_rows(col, o, c, d, p, (r0, r1), !whole);
+                        if whole {
+                            epilogue(c, o);
+                        }
+                    });
+            }
+            if !whole {
+                ob.par_chunks_mut(plane)
+                    .enumerate()
+                    .with_min_len(planes_per_task(plane))
+                    .for_each(|(c, o)| epilogue(c, o));
+            }
         }
     });
     out
 }
 
-/// Writes output channel `c`'s plane `o` [H_out, W_out] from its column rows: every output
-/// pixel is the sum of the column entries that land on it (what was written there before is
-/// replaced).
+/// Writes output channel `c`'s plane `o` [H_out, W_out] from its column rows over the whole
+/// input: every output pixel is the sum of the column entries that land on it (what was
+/// written there before is replaced).
+pub(super) fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &ConvTParams) {
+    col2im_rows(col, o, c, d, p, (0, d.h), false);
+}
+
+/// The share of input rows `r0..r1` in output channel `c`'s plane `o` [H_out, W_out], from
+/// the block's column rows (`col` [q, (r1 - r0)·W]): added to the output rows the block
+/// reaches with `accumulate`, written into every output row without it (then the block
+/// must be the whole input).
 ///
 /// Row by row: output row `oy` takes input row `iy` of tap `ky` when `iy·s_y + ky - p_y = oy`.
 /// A tap `kx` sends input columns to the output columns `ix·s_x + kx - p_x`, which step by
@@ -264,26 +319,43 @@ pub(super) fn host_forward_then(
 /// the phases are interleaved into `o`'s row once at the end. The earlier form added each
 /// tap into `o` with a stride of `s_x`, one scalar at a time (9% of the `paper` decoders'
 /// forward + backward in a `perf` profile on 2026-12-05).
-pub(super) fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &ConvTParams) {
-    let pp = d.p();
+fn col2im_rows(
+    col: &[f32],
+    o: &mut [f32],
+    c: usize,
+    d: Dims,
+    p: &ConvTParams,
+    (r0, r1): (usize, usize),
+    accumulate: bool,
+) {
+    let pp = (r1 - r0) * d.w;
     let [sy, sx] = p.stride;
     let [py, px] = p.padding;
-    if d.wo == 0 {
+    if d.wo == 0 || r0 >= r1 {
         return;
     }
+    // The output rows the block reaches: r0·s_y - p_y ..= (r1 - 1)·s_y + k_h - 1 - p_y.
+    let (oy0, oy1) = if accumulate {
+        (
+            (r0 * sy).saturating_sub(py),
+            ((r1 - 1) * sy + d.kh).saturating_sub(py).min(d.ho),
+        )
+    } else {
+        (0, d.ho)
+    };
     let mw = d.wo.div_ceil(sx);
     let mut phases = vec![0.0f32; sx * mw];
-    for (oy, out_row) in o.chunks_exact_mut(d.wo).take(d.ho).enumerate() {
+    for (oy, out_row) in o.chunks_exact_mut(d.wo).enumerate().take(oy1).skip(oy0) {
         phases.fill(0.0);
         for ky in 0..d.kh {
-            // iy·sy = oy + py - ky, with 0 <= iy < h.
+            // iy·sy = oy + py - ky, with r0 <= iy < r1.
             let Some(t) = (oy + py).checked_sub(ky) else {
                 continue;
             };
-            if t % sy != 0 || t / sy >= d.h {
+            if t % sy != 0 || t / sy < r0 || t / sy >= r1 {
                 continue;
             }
-            let iy = t / sy;
+            let iy = t / sy - r0;
             for kx in 0..d.kw {
                 let (ix0, ix1) = valid_inputs(d.w, d.wo, sx, px, kx);
                 if ix0 == ix1 {
@@ -300,35 +372,48 @@ pub(super) fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &Co
                     .for_each(|(a, v)| *a += v);
             }
         }
-        interleave(&phases, mw, sx, out_row);
+        interleave(&phases, mw, sx, out_row, accumulate);
     }
 }
 
-/// `out[m·s + r] = phases[r·mw + m]` for every output column.
-fn interleave(phases: &[f32], mw: usize, s: usize, out: &mut [f32]) {
+/// `out[m·s + r] (+)= phases[r·mw + m]` for every output column (added with `accumulate`).
+fn interleave(phases: &[f32], mw: usize, s: usize, out: &mut [f32], accumulate: bool) {
+    let put = |v: &mut f32, x: f32| {
+        if accumulate {
+            *v += x;
+        } else {
+            *v = x;
+        }
+    };
     match s {
-        1 => out.copy_from_slice(&phases[..out.len()]),
+        1 => out.iter_mut().zip(phases).for_each(|(v, x)| put(v, *x)),
         2 => {
             let (even, odd) = phases.split_at(mw);
             let mut pairs = out.chunks_exact_mut(2);
             for ((pair, e), o) in (&mut pairs).zip(even).zip(odd) {
-                pair[0] = *e;
-                pair[1] = *o;
+                put(&mut pair[0], *e);
+                put(&mut pair[1], *o);
             }
             if let [last] = pairs.into_remainder() {
-                *last = even[mw - 1];
+                put(last, even[mw - 1]);
             }
         }
         _ => out
             .iter_mut()
             .enumerate()
-            .for_each(|(ox, v)| *v = phases[(ox % s) * mw + ox / s]),
+            .for_each(|(ox, v)| put(v, phases[(ox % s) * mw + ox / s])),
     }
 }
 
 /// Gathers `dcol` [q, P] from one batch item's output gradient `g` [C_out, H_out, W_out].
 pub(super) fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
-    let pp = d.p();
+    im2col_rows(g, dcol, d, p, (0, d.h));
+}
+
+/// Gathers the block of input rows `r0..r1` of `dcol` ([q, (r1 - r0)·W]) from one batch
+/// item's output gradient `g` [C_out, H_out, W_out].
+fn im2col_rows(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams, (r0, r1): (usize, usize)) {
+    let pp = (r1 - r0) * d.w;
     let plane = d.ho * d.wo;
     let [sy, sx] = p.stride;
     let [py, px] = p.padding;
@@ -339,13 +424,17 @@ pub(super) fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
             let (c, ky, kx) = (r / (d.kh * d.kw), (r / d.kw) % d.kh, r % d.kw);
             let gc = &g[c * plane..(c + 1) * plane];
             let (iy0, iy1) = valid_inputs(d.h, d.ho, sy, py, ky);
+            // The valid rows inside the block, counted from its first row.
+            let iy1 = iy1.clamp(r0, r1) - r0;
+            let iy0 = iy0.clamp(r0, r1) - r0;
+            let iy0 = iy0.min(iy1);
             let (ix0, ix1) = valid_inputs(d.w, d.wo, sx, px, kx);
             // Only the entries no tap reaches are zeroed; the rest are written once.
             row[..iy0 * d.w].fill(0.0);
             row[iy1 * d.w..].fill(0.0);
             let ox0 = ix0 * sx + kx - px;
             for iy in iy0..iy1 {
-                let oy = iy * sy + ky - py;
+                let oy = (iy + r0) * sy + ky - py;
                 let dst = &mut row[iy * d.w..(iy + 1) * d.w];
                 dst[..ix0].fill(0.0);
                 dst[ix1..].fill(0.0);
@@ -375,7 +464,9 @@ pub(super) fn im2col(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams) {
         });
 }
 
-/// Backward on host memory → (dx [N, C_in, H, W], dweight [C_in, C_out, k_h, k_w]).
+/// Backward on host memory → (dx [N, C_in, H, W], dweight [C_in, C_out, k_h, k_w]), in
+/// blocks of input rows as the forward ([`host_forward_then`]): per block, `dcol` from the
+/// output gradient, `dX[:, block] = W · dcol` and `dW += X[:, block] · dcolᵀ`.
 pub(super) fn host_backward(
     x: &[f32],
     weight: &[f32],
@@ -383,53 +474,57 @@ pub(super) fn host_backward(
     d: Dims,
     p: &ConvTParams,
 ) -> (Vec<f32>, Vec<f32>) {
+    host_backward_blocked(x, weight, g, d, p, input_rows_per_block(d, COLUMN_BLOCK))
+}
+
+/// [`host_backward`] with `rows` input rows per block (the tests set it small).
+fn host_backward_blocked(
+    x: &[f32],
+    weight: &[f32],
+    g: &[f32],
+    d: Dims,
+    p: &ConvTParams,
+    rows: usize,
+) -> (Vec<f32>, Vec<f32>) {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
     let mut dx = Vec::with_capacity(d.n * d.ci * pp);
-    let mut dw = Vec::with_capacity(d.ci * q);
-    with_columns(q * pp, |dcol| {
+    let mut dw = vec![0.0f32; d.ci * q];
+    with_columns(q * rows * d.w, |dcol| {
         for b in 0..d.n {
-            im2col(&g[b * d.co * plane..(b + 1) * d.co * plane], dcol, d, p);
-            // dX [C_in, P] = W [C_in, q] · dcol [q, P]
-            matmul_uninit(
-                [d.ci, pp, q],
-                &mut dx.spare_capacity_mut()[b * d.ci * pp..(b + 1) * d.ci * pp],
-                weight,
-                [q, 1],
-                dcol,
-                [pp, 1],
-            );
-            // dW [C_in, q] (+)= X [C_in, P] · dcolᵀ [P, q]
+            let gb = &g[b * d.co * plane..(b + 1) * d.co * plane];
             let xb = &x[b * d.ci * pp..(b + 1) * d.ci * pp];
-            if b == 0 {
-                matmul_uninit(
-                    [d.ci, q, pp],
-                    &mut dw.spare_capacity_mut()[..d.ci * q],
-                    xb,
+            let dxb = &mut dx.spare_capacity_mut()[b * d.ci * pp..(b + 1) * d.ci * pp];
+            for r0 in (0..d.h).step_by(rows) {
+                let r1 = (r0 + rows).min(d.h);
+                let n = (r1 - r0) * d.w;
+                let dcol = &mut dcol[..q * n];
+                im2col_rows(gb, dcol, d, p, (r0, r1));
+                // dX[:, block] [C_in, n] = W [C_in, q] · dcol [q, n]
+                matmul_into_uninit(
+                    [d.ci, n, q],
+                    &mut dxb[r0 * d.w..],
                     [pp, 1],
+                    weight,
+                    [q, 1],
                     dcol,
-                    [1, pp],
+                    [n, 1],
                 );
-                // SAFETY: `matmul_uninit` wrote all `C_in·q` values.
-                unsafe { dw.set_len(d.ci * q) };
-            } else {
+                // dW [C_in, q] += X[:, block] [C_in, n] · dcolᵀ [n, q]
                 matmul(
-                    [d.ci, q, pp],
+                    [d.ci, q, n],
                     &mut dw,
                     [q, 1],
                     true,
-                    xb,
+                    &xb[r0 * d.w..],
                     [pp, 1],
                     dcol,
-                    [1, pp],
+                    [1, n],
                 );
             }
         }
     });
-    // SAFETY: `matmul_uninit` wrote the `C_in·P` values of every batch item.
+    // SAFETY: the blocks' products wrote the `C_in·P` values of every batch item.
     unsafe { dx.set_len(d.n * d.ci * pp) };
-    if d.n == 0 {
-        dw.resize(d.ci * q, 0.0);
-    }
     (dx, dw)
 }
 
@@ -719,6 +814,75 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The passes in blocks of every possible number of input rows (down to one, so that
+    /// every block boundary falls between output rows that two blocks share) against burn's
+    /// `conv_transpose2d` and its backward on ndarray, on every index map of [`CASES`]; the
+    /// epilogue runs once per plane, after the last block.
+    #[test]
+    fn blocks_match_burn() {
+        let device = Device::ndarray().autodiff();
+        for (i, &(k, stride, padding, [h, w], n)) in CASES.iter().enumerate() {
+            let (ci, co) = (3, 2);
+            let p = ConvTParams { stride, padding };
+            device.seed(100 + i as u64);
+            let x = Tensor::<4>::random([n, ci, h, w], Distribution::Normal(0.0, 1.0), &device);
+            let wt = Tensor::<4>::random(
+                [ci, co, k[0], k[1]],
+                Distribution::Normal(0.0, 1.0),
+                &device,
+            );
+            let [ho, wo] = p.output_size([h, w], k).expect("valid case");
+            let g = Tensor::<4>::random([n, co, ho, wo], Distribution::Normal(0.0, 1.0), &device);
+            let (xa, wa) = (x.clone().require_grad(), wt.clone().require_grad());
+            let y =
+                burn::tensor::module::conv_transpose2d(xa.clone(), wa.clone(), None, p.options());
+            let grads = (y.clone() * g.clone()).sum().backward();
+            let (y_ref, dx_ref, dw_ref) = (
+                host(y),
+                host(xa.grad(&grads).expect("x grad")),
+                host(wa.grad(&grads).expect("w grad")),
+            );
+            let (xs, ws, gs) = (host(x), host(wt), host(g));
+            let d = Dims::new(&[n, ci, h, w], &[ci, co, k[0], k[1]], &p);
+            let plane = ho * wo;
+            for rows in 1..=h {
+                // The epilogue adds 10 + the channel, so a plane it misses or visits twice shows.
+                let y = host_forward_blocked(&xs, &ws, d, &p, rows, |c, o: &mut [f32]| {
+                    o.iter_mut().for_each(|v| *v += 10.0 + c as f32)
+                });
+                let y: Vec<f32> = y
+                    .iter()
+                    .enumerate()
+                    .map(|(j, v)| v - 10.0 - ((j / plane) % co) as f32)
+                    .collect();
+                assert!(max_rel(&y, &y_ref) < 1e-5, "case {i}, {rows} rows: forward");
+                let (dx, dw) = host_backward_blocked(&xs, &ws, &gs, d, &p, rows);
+                assert!(
+                    max_rel(&dx, &dx_ref) < 1e-5,
+                    "case {i}, {rows} rows: grad x"
+                );
+                assert!(
+                    max_rel(&dw, &dw_ref) < 1e-5,
+                    "case {i}, {rows} rows: grad weight"
+                );
+            }
+        }
+    }
+
+    /// Blocks of [`COLUMN_BLOCK`] values: the `paper` decoders' last geometry layer (32 to 11
+    /// channels, 256 to 512) in blocks of 5 input rows, its first (8 x 8) in one.
+    #[test]
+    fn rows_per_block() {
+        let p = ConvTParams {
+            stride: [2, 2],
+            padding: [1, 1],
+        };
+        let d = |ci: usize, co: usize, h: usize| Dims::new(&[1, ci, h, h], &[ci, co, 4, 4], &p);
+        assert_eq!(input_rows_per_block(d(32, 11, 256), COLUMN_BLOCK), 5);
+        assert_eq!(input_rows_per_block(d(256, 256, 8), COLUMN_BLOCK), 8);
+        assert_eq!(input_rows_per_block(d(3, 1, 4), 1), 1);
     }
 
     #[test]
