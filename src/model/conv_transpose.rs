@@ -378,13 +378,22 @@ fn col2im_rows(
 
 /// `out[m·s + r] (+)= phases[r·mw + m]` for every output column (added with `accumulate`).
 fn interleave(phases: &[f32], mw: usize, s: usize, out: &mut [f32], accumulate: bool) {
-    let put = |v: &mut f32, x: f32| {
-        if accumulate {
-            *v += x;
-        } else {
-            *v = x;
-        }
-    };
+    // One loop per mode, not a branch per value in the hot loop.
+    if accumulate {
+        interleave_with(phases, mw, s, out, |v, x| *v += x);
+    } else {
+        interleave_with(phases, mw, s, out, |v, x| *v = x);
+    }
+}
+
+/// [`interleave`] with `put(out value, phase value)`.
+fn interleave_with(
+    phases: &[f32],
+    mw: usize,
+    s: usize,
+    out: &mut [f32],
+    put: impl Fn(&mut f32, f32),
+) {
     match s {
         1 => out.iter_mut().zip(phases).for_each(|(v, x)| put(v, *x)),
         2 => {
@@ -704,42 +713,51 @@ mod tests {
         ([2, 1], [3, 2], [0, 0], [3, 2], 2),
     ];
 
+    /// Case `i`'s parameters and random input, weight and output gradient on `device`.
+    fn case_tensors(
+        i: usize,
+        seed: u64,
+        device: &Device,
+    ) -> (ConvTParams, [Tensor<4>; 3], [usize; 4]) {
+        let (k, stride, padding, [h, w], n) = CASES[i];
+        let (ci, co) = (3, 2);
+        let p = ConvTParams { stride, padding };
+        device.seed(seed);
+        let x = Tensor::<4>::random([n, ci, h, w], Distribution::Normal(0.0, 1.0), device);
+        let wt = Tensor::<4>::random([ci, co, k[0], k[1]], Distribution::Normal(0.0, 1.0), device);
+        let [ho, wo] = p.output_size([h, w], k).expect("valid case");
+        let g = Tensor::<4>::random([n, co, ho, wo], Distribution::Normal(0.0, 1.0), device);
+        (p, [x, wt, g], [n, co, ho, wo])
+    }
+
+    /// The output and the gradients of `x` and `wt` for the output gradient `g`, by `conv`
+    /// under burn's autodiff.
+    fn values_and_grads(
+        [x, wt, g]: [Tensor<4>; 3],
+        conv: impl Fn(Tensor<4>, Tensor<4>) -> Tensor<4>,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let xa = x.require_grad();
+        let wa = wt.require_grad();
+        let y = conv(xa.clone(), wa.clone());
+        let grads = (y.clone() * g).sum().backward();
+        (
+            host(y),
+            host(xa.grad(&grads).expect("x grad")),
+            host(wa.grad(&grads).expect("w grad")),
+        )
+    }
+
+    /// burn's `conv_transpose2d` (the reference twin) as `values_and_grads` takes it.
+    fn burn_conv(p: ConvTParams) -> impl Fn(Tensor<4>, Tensor<4>) -> Tensor<4> {
+        move |x, w| burn::tensor::module::conv_transpose2d(x, w, None, p.options())
+    }
+
     /// Values and gradients against burn's `conv_transpose2d` (the reference twin).
     fn check_against_burn(device: Device) {
-        for (i, &(k, stride, padding, [h, w], n)) in CASES.iter().enumerate() {
-            let (ci, co) = (3, 2);
-            let p = ConvTParams { stride, padding };
-            device.seed(i as u64);
-            let x = Tensor::<4>::random([n, ci, h, w], Distribution::Normal(0.0, 1.0), &device);
-            let wt = Tensor::<4>::random(
-                [ci, co, k[0], k[1]],
-                Distribution::Normal(0.0, 1.0),
-                &device,
-            );
-            let [ho, wo] = p.output_size([h, w], k).expect("valid case");
-            let gw = Tensor::<4>::random([n, co, ho, wo], Distribution::Normal(0.0, 1.0), &device);
-            let run = |ours: bool| {
-                let xa = x.clone().require_grad();
-                let wa = wt.clone().require_grad();
-                let y = if ours {
-                    conv_transpose2d(xa.clone(), wa.clone(), p)
-                } else {
-                    burn::tensor::module::conv_transpose2d(
-                        xa.clone(),
-                        wa.clone(),
-                        None,
-                        p.options(),
-                    )
-                };
-                let grads = (y.clone() * gw.clone()).sum().backward();
-                (
-                    host(y),
-                    host(xa.grad(&grads).expect("x grad")),
-                    host(wa.grad(&grads).expect("w grad")),
-                )
-            };
-            let (y, dx, dw) = run(true);
-            let (y_ref, dx_ref, dw_ref) = run(false);
+        for i in 0..CASES.len() {
+            let (p, xwg, [n, co, ho, wo]) = case_tensors(i, i as u64, &device);
+            let (y, dx, dw) = values_and_grads(xwg.clone(), |x, w| conv_transpose2d(x, w, p));
+            let (y_ref, dx_ref, dw_ref) = values_and_grads(xwg, burn_conv(p));
             assert_eq!(y.len(), n * co * ho * wo, "case {i}");
             assert!(max_rel(&y, &y_ref) < 1e-5, "case {i}: forward");
             assert!(max_rel(&dx, &dx_ref) < 1e-5, "case {i}: grad x");
@@ -823,28 +841,11 @@ mod tests {
     #[test]
     fn blocks_match_burn() {
         let device = Device::ndarray().autodiff();
-        for (i, &(k, stride, padding, [h, w], n)) in CASES.iter().enumerate() {
-            let (ci, co) = (3, 2);
-            let p = ConvTParams { stride, padding };
-            device.seed(100 + i as u64);
-            let x = Tensor::<4>::random([n, ci, h, w], Distribution::Normal(0.0, 1.0), &device);
-            let wt = Tensor::<4>::random(
-                [ci, co, k[0], k[1]],
-                Distribution::Normal(0.0, 1.0),
-                &device,
-            );
-            let [ho, wo] = p.output_size([h, w], k).expect("valid case");
-            let g = Tensor::<4>::random([n, co, ho, wo], Distribution::Normal(0.0, 1.0), &device);
-            let (xa, wa) = (x.clone().require_grad(), wt.clone().require_grad());
-            let y =
-                burn::tensor::module::conv_transpose2d(xa.clone(), wa.clone(), None, p.options());
-            let grads = (y.clone() * g.clone()).sum().backward();
-            let (y_ref, dx_ref, dw_ref) = (
-                host(y),
-                host(xa.grad(&grads).expect("x grad")),
-                host(wa.grad(&grads).expect("w grad")),
-            );
-            let (xs, ws, gs) = (host(x), host(wt), host(g));
+        for (i, &(k, _, _, [h, w], n)) in CASES.iter().enumerate() {
+            let (p, xwg, [_, co, ho, wo]) = case_tensors(i, 100 + i as u64, &device);
+            let ci = xwg[0].dims()[1];
+            let (y_ref, dx_ref, dw_ref) = values_and_grads(xwg.clone(), burn_conv(p));
+            let [xs, ws, gs] = xwg.map(host);
             let d = Dims::new(&[n, ci, h, w], &[ci, co, k[0], k[1]], &p);
             let plane = ho * wo;
             for rows in 1..=h {
