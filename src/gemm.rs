@@ -116,6 +116,92 @@ pub fn matmul_into_uninit(
     };
 }
 
+/// Summed `k` from which [`GradientSum`] keeps its sum column-major (with at least
+/// [`COLUMN_MAJOR_MIN_N`] columns). Measured on the `paper` decoders' transposed
+/// convolutions (2026-12-05, docs/performance.md), weight gradient per step, row-major ->
+/// column-major: k = 4096 (128 -> 64 at 64^2) 9.2-11.1 -> 5.9-7.1 ms, k = 16384 (64 -> 32)
+/// 17.0-19.3 -> 6.7-7.4 ms, k = 65536 (32 -> 11) 14.2-16.0 -> 8.1-8.4 ms; at k = 1024 and
+/// below no gain that pays for the transposition (128 -> 128 at 32^2: 3.1-3.3 -> 2.7-2.9 ms
+/// plus 1.1 ms).
+pub const COLUMN_MAJOR_MIN_K: usize = 4096;
+
+/// Columns (`n`) from which [`GradientSum`] keeps its sum column-major: with 48 (64 -> 3,
+/// k = 16384) the column-major product was slower (1.4-1.9 -> 1.9-2.4 ms).
+pub const COLUMN_MAJOR_MIN_N: usize = 64;
+
+/// A sum of products `lhs · rhsᵀ` whose two operands both run along `k` (`lhs` [m×k],
+/// `rhs` [n×k], a row each per output row and column): the weight gradients of the column
+/// convolutions, `X · dcolᵀ` summed over blocks of pixels or batch items.
+///
+/// With a long `k` it is kept column-major while it sums and transposed once at the end:
+/// gemm computes a row-major destination as the transposed problem, which packs `rhs` (the
+/// larger operand there) in panels of 64 rows a power-of-two stride apart; into a
+/// column-major destination the same product took a third to a half of the time (see
+/// [`COLUMN_MAJOR_MIN_K`]).
+pub struct GradientSum {
+    m: usize,
+    n: usize,
+    column_major: bool,
+    /// The sum: value (r, c) at `c·m + r` when `column_major`, at `r·n + c` otherwise.
+    sum: Vec<f32>,
+}
+
+impl GradientSum {
+    /// A zero `m×n` sum that will take `k_total` values of `k` in all (which picks its
+    /// layout).
+    pub fn new(m: usize, n: usize, k_total: usize) -> Self {
+        Self {
+            m,
+            n,
+            column_major: k_total >= COLUMN_MAJOR_MIN_K && n >= COLUMN_MAJOR_MIN_N,
+            sum: vec![0.0; m * n],
+        }
+    }
+
+    /// Adds `lhs[m×k] · rhs[n×k]ᵀ`, the operands' rows `lhs_row` and `rhs_row` values apart
+    /// (their `k` values contiguous).
+    ///
+    /// # Panics
+    /// When a row addresses past the end of its slice.
+    pub fn add(&mut self, k: usize, lhs: &[f32], lhs_row: usize, rhs: &[f32], rhs_row: usize) {
+        let (m, n) = (self.m, self.n);
+        let dst_strides = if self.column_major { [1, m] } else { [n, 1] };
+        matmul(
+            [m, n, k],
+            &mut self.sum,
+            dst_strides,
+            true,
+            lhs,
+            [lhs_row, 1],
+            rhs,
+            [1, rhs_row],
+        );
+    }
+
+    /// The sum, row-major [m×n].
+    pub fn into_row_major(self) -> Vec<f32> {
+        let (m, n) = (self.m, self.n);
+        if !self.column_major {
+            return self.sum;
+        }
+        let mut out = vec![0.0f32; m * n];
+        // In square tiles, so that both the reads and the writes stay within a few cache
+        // lines per tile (a plain loop strides through `out` a row apart per value).
+        const TILE: usize = 16;
+        for c0 in (0..n).step_by(TILE) {
+            for r0 in (0..m).step_by(TILE) {
+                for c in c0..(c0 + TILE).min(n) {
+                    let col = &self.sum[c * m..(c + 1) * m];
+                    for r in r0..(r0 + TILE).min(m) {
+                        out[r * n + c] = col[r];
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn product(
     parallel: bool,
@@ -268,6 +354,53 @@ mod tests {
                     (a - b).abs() <= 1e-4 * b.abs().max(1.0),
                     "{mnk:?}: {a} vs {b}"
                 );
+            }
+        }
+    }
+
+    /// Against the triple loop, summed over three blocks of `k` (with strides wider than
+    /// the blocks, as the convolutions' row blocks have), including an empty sum, in both
+    /// layouts.
+    #[test]
+    fn gradient_sum_matches_naive() {
+        for [m, n, k] in [
+            [3, 5, 12],
+            [1, 1, 3],
+            [4, 0, 6],
+            [0, 4, 6],
+            [67, 45, 99],
+            [5, 70, 30],
+            [67, 80, 40],
+        ] {
+            let lhs: Vec<f32> = (0..m * k)
+                .map(|i| ((i * 7 % 13) as f32 - 6.0) / 4.0)
+                .collect();
+            let rhs: Vec<f32> = (0..n * k)
+                .map(|i| ((i * 5 % 11) as f32 - 5.0) / 3.0)
+                .collect();
+            // Both layouts where n allows: the k_total given picks one.
+            for k_total in [k, COLUMN_MAJOR_MIN_K] {
+                let mut sum = GradientSum::new(m, n, k_total);
+                for (k0, k1) in [(0, k / 3), (k / 3, k / 2), (k / 2, k)] {
+                    sum.add(
+                        k1 - k0,
+                        &lhs[k0.min(lhs.len())..],
+                        k,
+                        &rhs[k0.min(rhs.len())..],
+                        k,
+                    );
+                }
+                // rhs [n×k] read as [k×n] with strides [1, k] is rhsᵀ.
+                let rhs_t: Vec<f32> = (0..k * n).map(|i| rhs[(i % n) * k + i / n]).collect();
+                let want = naive([m, n, k], &lhs, &rhs_t);
+                let got = sum.into_row_major();
+                assert_eq!(got.len(), m * n);
+                for (a, b) in got.iter().zip(&want) {
+                    assert!(
+                        (a - b).abs() <= 1e-4 * b.abs().max(1.0),
+                        "{m}x{n}x{k} ({k_total}): {a} vs {b}"
+                    );
+                }
             }
         }
     }

@@ -47,7 +47,7 @@ use rayon::prelude::*;
 
 use super::constants::planes_per_task;
 use super::conv_transpose::{ConvTParams, Dims, col2im_plane, im2col, with_columns};
-use crate::gemm::{matmul, matmul_uninit};
+use crate::gemm::{GradientSum, matmul, matmul_uninit};
 use crate::splat::backend::{HostIo, floats};
 
 /// Stride and padding of a convolution (dilation 1, one group):
@@ -236,22 +236,13 @@ pub(super) fn host_backward(
 ) -> (Vec<f32>, Vec<f32>) {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
     let mut dx = vec![0.0f32; d.n * d.co * plane];
-    let mut dw = vec![0.0f32; d.ci * q];
+    let mut dw = GradientSum::new(d.ci, q, d.n * d.p());
     with_columns(q * pp, |col| {
         for b in 0..d.n {
             let gb = &g[b * d.ci * pp..(b + 1) * d.ci * pp];
             im2col(&x[b * d.co * plane..(b + 1) * d.co * plane], col, d, p);
             // dW [C_out, q] += dY [C_out, P] · colᵀ [P, q]
-            matmul(
-                [d.ci, q, pp],
-                &mut dw,
-                [q, 1],
-                b > 0,
-                gb,
-                [pp, 1],
-                col,
-                [1, pp],
-            );
+            dw.add(pp, gb, pp, col, pp);
             // dcol [q, P] = Wᵀ [q, C_out] · dY [C_out, P], into the column buffer (read
             // above).
             matmul(
@@ -271,7 +262,7 @@ pub(super) fn host_backward(
                 .for_each(|(c, o)| col2im_plane(col, o, c, d, p));
         }
     });
-    (dx, dw)
+    (dx, dw.into_row_major())
 }
 
 impl<H: HostIo> Conv2dBackend for H {

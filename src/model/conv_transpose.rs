@@ -44,7 +44,7 @@ use burn::tensor::ops::ConvTransposeOptions;
 use rayon::prelude::*;
 
 use super::constants::{COLUMN_BLOCK, planes_per_task};
-use crate::gemm::{matmul, matmul_into_uninit};
+use crate::gemm::{GradientSum, matmul, matmul_into_uninit};
 use crate::splat::backend::{HostIo, floats};
 
 /// Stride and padding of a transposed convolution (dilation 1, one group, no output
@@ -497,7 +497,7 @@ fn host_backward_blocked(
 ) -> (Vec<f32>, Vec<f32>) {
     let (pp, q, plane) = (d.p(), d.q(), d.ho * d.wo);
     let mut dx = Vec::with_capacity(d.n * d.ci * pp);
-    let mut dw = vec![0.0f32; d.ci * q];
+    let mut dw = GradientSum::new(d.ci, q, d.n * d.p());
     with_columns(q * rows * d.w, |dcol| {
         for b in 0..d.n {
             let gb = &g[b * d.co * plane..(b + 1) * d.co * plane];
@@ -519,22 +519,13 @@ fn host_backward_blocked(
                     [n, 1],
                 );
                 // dW [C_in, q] += X[:, block] [C_in, n] · dcolᵀ [n, q]
-                matmul(
-                    [d.ci, q, n],
-                    &mut dw,
-                    [q, 1],
-                    true,
-                    &xb[r0 * d.w..],
-                    [pp, 1],
-                    dcol,
-                    [1, n],
-                );
+                dw.add(n, &xb[r0 * d.w..], pp, dcol, n);
             }
         }
     });
     // SAFETY: the blocks' products wrote the `C_in·P` values of every batch item.
     unsafe { dx.set_len(d.n * d.ci * pp) };
-    (dx, dw)
+    (dx, dw.into_row_major())
 }
 
 thread_local! {
