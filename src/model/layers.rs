@@ -33,6 +33,7 @@ use super::conv_t_bias_act::conv_transpose2d_bias_act;
 use super::conv_transpose::{ConvTParams, conv_transpose2d};
 use super::conv2d::{Conv2dParams, conv2d};
 pub use super::weight_norm::weight_norm;
+use super::wn_linear::wn_linear;
 
 /// LeakyReLU with the networks' slope ([`LEAKY_RELU_SLOPE`] = 0.2).
 pub fn leaky_relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
@@ -205,11 +206,23 @@ impl WnLinear {
     /// - `x`: [..., d_input]
     /// - returns [..., d_output]
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        linear(
-            x,
-            self.effective_weight().transpose(),
-            self.bias.as_ref().map(|b| b.val()),
-        )
+        let bias = self.bias.as_ref().map(|b| b.val());
+        if self.folded {
+            return linear(x, self.v.val().transpose(), bias);
+        }
+        // The fused op ([`wn_linear`]) takes `[B, d_input]`: the leading dimensions are
+        // flattened and restored.
+        let dims = x.dims();
+        let [o, i] = self.v.dims();
+        let rows = dims[..D - 1].iter().product::<usize>();
+        let y = wn_linear(x.reshape([rows, i]), self.v.val(), self.g.val());
+        let y = match bias {
+            Some(b) => y + b.unsqueeze::<2>(),
+            None => y,
+        };
+        let mut out = dims;
+        out[D - 1] = o;
+        y.reshape(out)
     }
 
     /// For inference: stores the effective weight in `v` so that forward passes skip the

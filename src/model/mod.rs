@@ -22,6 +22,7 @@ pub mod net;
 mod op_check;
 pub mod pluecker;
 pub mod weight_norm;
+pub mod wn_linear;
 
 pub use avatar::{Ablations, Avatar, AvatarConfig, AvatarOutput, LiftSetup};
 pub use decoders::{

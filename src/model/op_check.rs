@@ -61,14 +61,14 @@ pub fn check_finite_differences(
     }
 }
 
-/// A layer op of an input, a weight and a bias: its output and the gradients of
-/// `sum(f(x, w, b) · up)` with respect to all three, as host values `[output, d x, d w,
-/// d b]`.
-pub fn layer_output_and_gradients<const D: usize>(
-    [x, w]: [&Tensor<4>; 2],
+/// A layer op of an input, a weight and a bias (or [`super::wn_linear`]'s magnitudes `g`):
+/// its output and the gradients of `sum(f(x, w, b) · up)` with respect to all three, as host
+/// values `[output, d x, d w, d b]`.
+pub fn layer_output_and_gradients<const R: usize, const D: usize>(
+    [x, w]: [&Tensor<R>; 2],
     b: &Tensor<D>,
-    up: &Tensor<4>,
-    f: impl Fn(Tensor<4>, Tensor<4>, Tensor<D>) -> Tensor<4>,
+    up: &Tensor<R>,
+    f: impl Fn(Tensor<R>, Tensor<R>, Tensor<D>) -> Tensor<R>,
 ) -> [Vec<f32>; 4] {
     let (x, w, b) = (
         x.clone().require_grad(),

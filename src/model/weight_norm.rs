@@ -10,7 +10,8 @@
 //! passes (the norm, then `w`) and the backward three (the norm again, the per-channel
 //! dot products, then `dv`). Measured in one session, interleaved (`cargo bench --bench
 //! cpu_vs_torch`, docs/performance.md): the decoders' forward + backward took 10-25% less
-//! time with it.
+//! time with it. The convolutions use it; the linear layer now folds the norm into its
+//! product instead ([`super::wn_linear`]), never forming `w`.
 //!
 //! With `n = ||v||` and `s_o = g_o / n`, for the gradient `dw` of `w`:
 //! - `a_o = Σ_{i in channel o} dw_i · v_i`;
@@ -77,7 +78,7 @@ pub trait WeightNormBackend: Backend {
 }
 
 /// The forward from burn's tensor ops (the trait's default body).
-fn composed_forward<B: Backend>(VG { v, g }: VG<B>, out_dim: usize) -> FloatTensor<B> {
+pub(super) fn composed_forward<B: Backend>(VG { v, g }: VG<B>, out_dim: usize) -> FloatTensor<B> {
     let norm = B::float_sqrt(B::float_sum(B::float_powi_scalar(v.clone(), 2.into())));
     let scale = B::float_div(g, norm);
     let shape = v.shape().to_vec();
@@ -85,7 +86,7 @@ fn composed_forward<B: Backend>(VG { v, g }: VG<B>, out_dim: usize) -> FloatTens
 }
 
 /// The backward from burn's tensor ops (the trait's default body).
-fn composed_backward<B: Backend>(
+pub(super) fn composed_backward<B: Backend>(
     VG { v, g }: VG<B>,
     grad: FloatTensor<B>,
     out_dim: usize,
@@ -176,7 +177,7 @@ fn runs(
 const LANES: usize = 8;
 
 /// `Σ a_i · b_i` in `f64`, over `LANES` interleaved partial sums.
-fn dot(a: &[f32], b: &[f32]) -> f64 {
+pub(super) fn dot(a: &[f32], b: &[f32]) -> f64 {
     let mut acc = [0.0f64; LANES];
     let (a8, b8) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
     let tail: f64 = a8
