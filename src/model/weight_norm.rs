@@ -11,7 +11,7 @@
 //! dot products, then `dv`). Measured in one session, interleaved (`cargo bench --bench
 //! cpu_vs_torch`, docs/performance.md): the decoders' forward + backward took 10-25% less
 //! time with it. The convolutions use it; the linear layer now folds the norm into its
-//! product instead ([`super::wn_linear`]), never forming `w`.
+//! product instead ([`mod@super::wn_linear`]), never forming `w`.
 //!
 //! With `n = ||v||` and `s_o = g_o / n`, for the gradient `dw` of `w`:
 //! - `a_o = Σ_{i in channel o} dw_i · v_i`;

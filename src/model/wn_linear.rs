@@ -4,7 +4,7 @@
 //!
 //! Why: Exp2Code's linear layer is the decoders' largest weight (`64·C_code x C_cond`:
 //! 16,384 x 243 = 4.0 M values in the `paper` configuration) and sees one condition vector per
-//! frame, so its cost is passes over memory, not arithmetic. Composed ([`super::weight_norm`]
+//! frame, so its cost is passes over memory, not arithmetic. Composed ([`mod@super::weight_norm`]
 //! then burn's `linear`), the forward wrote `w` and read it again, and the backward formed
 //! `dw = dyᵀ · x`, a transposed copy, `dx = dy · w`, then the weight norm's three passes: 12.5
 //! ms forward and 31 ms backward for that one layer on 2026-12-05 (flex, 2 threads), about a
@@ -16,9 +16,9 @@
 //!   copy), giving `a_o = Σ_b dy_bo · u_bo` (`= Σ_i dw_oi · v_oi`, the weight norm's dot
 //!   product, without `dw`), `dg_o = a_o / n` and `k = Σ_o g_o · a_o / n³`; the second writes
 //!   `dv_o = Σ_b e_bo · x_b - k · v_o` and sums `dx_b = Σ_o e_bo · v_o`, with
-//!   `e_bo = s_o · dy_bo`. The weight norm's formula is [`super::weight_norm`]'s.
+//!   `e_bo = s_o · dy_bo`. The weight norm's formula is [`mod@super::weight_norm`]'s.
 //!
-//! Thread mapping (CPU): `v` is cut into runs of [`ROWS_PER_TASK`] output rows, one task
+//! Thread mapping (CPU): `v` is cut into runs of `ROWS_PER_TASK` output rows, one task
 //! each; `dx` is summed per task and the partial sums added. Norms and dot products are summed
 //! in `f64`.
 //!
