@@ -3,7 +3,10 @@
 //! and the input gradients, so a test compares the op with its reference twin in one line
 //! per side.
 
-use burn::tensor::Tensor;
+use burn::backend::Flex;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::{Tensor, TensorData};
 
 /// The values of a tensor, row-major.
 pub fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -96,4 +99,15 @@ pub fn compare_outputs(ours: &[Vec<f32>; 4], want: &[Vec<f32>; 4], what: &str) {
         let e = max_rel(a, b, 1e-3);
         assert!(e < 1e-5, "{what}: {name} differs by {e}");
     }
+}
+
+/// A flex tensor (no autodiff) of `shape` holding a fixed pattern of values in about
+/// [-1.6, 1.6], shifted by `off` places, plus `add`: the inputs of the tests that compare an
+/// op's default bodies (what wgpu runs) with its host passes.
+pub fn flex_pattern(shape: &[usize], off: usize, add: f32) -> FloatTensor<Flex> {
+    let len = shape.iter().product::<usize>();
+    let data: Vec<f32> = (0..len)
+        .map(|i| ((((i + off) * 37) % 23) as f32 - 11.0) / 7.0 + add)
+        .collect();
+    Flex::float_from_data(TensorData::new(data, shape.to_vec()), &Default::default())
 }

@@ -349,7 +349,6 @@ impl<B: Backend + WeightNormBackend, C: CheckpointStrategy> WeightNormBackend fo
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::backend::ops::FloatTensorOps;
     use burn::tensor::{Device, Distribution, TensorData};
 
     use crate::model::op_check::{check_finite_differences, host, output_and_gradients};
@@ -406,13 +405,7 @@ mod tests {
     #[test]
     fn default_bodies_match_the_host_passes() {
         type F = burn::backend::Flex;
-        let device = Default::default();
-        let n = |i: usize| ((i * 37 % 23) as f32 - 11.0) / 7.0;
-        let t = |s: &[usize], off: usize, add: f32| -> FloatTensor<F> {
-            let len = s.iter().product::<usize>();
-            let data: Vec<f32> = (0..len).map(|i| n(i + off) + add).collect();
-            F::float_from_data(TensorData::new(data, s.to_vec()), &device)
-        };
+        let t = crate::model::op_check::flex_pattern;
         let shape = [3usize, 4, 2, 2];
         let (v, dw) = (t(&shape, 0, 0.0), t(&shape, 5, 0.0));
         let g = t(&[4], 9, 3.0);

@@ -364,13 +364,7 @@ mod tests {
     #[test]
     fn default_bodies_match_the_host_passes() {
         type F = burn::backend::Flex;
-        let device = Default::default();
-        let n = |i: usize| ((i * 37 % 23) as f32 - 11.0) / 7.0;
-        let t = |s: &[usize], off: usize, add: f32| -> FloatTensor<F> {
-            let len = s.iter().product::<usize>();
-            let data: Vec<f32> = (0..len).map(|i| n(i + off) + add).collect();
-            F::float_from_data(TensorData::new(data, s.to_vec()), &device)
-        };
+        let t = crate::model::op_check::flex_pattern;
         let (x, v, g, dy) = (
             t(&[2, 5], 0, 0.0),
             t(&[3, 5], 3, 0.0),
