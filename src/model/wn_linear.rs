@@ -134,6 +134,11 @@ fn host_products(x: &[f32], v: &[f32], d: Dims) -> (Vec<f64>, f64) {
     if d.i == 0 {
         return (ut, 0.0);
     }
+    if d.b == 0 {
+        // No products: the norm alone (the zip below would stop at the empty `uᵀ`).
+        let sq: f64 = v.par_chunks(ROWS_PER_TASK * d.i).map(|r| dot(r, r)).sum();
+        return (ut, sq.sqrt());
+    }
     let sq: f64 = ut
         .par_chunks_mut(ROWS_PER_TASK * d.b.max(1))
         .zip(v.par_chunks(ROWS_PER_TASK * d.i))
@@ -152,8 +157,12 @@ fn host_products(x: &[f32], v: &[f32], d: Dims) -> (Vec<f64>, f64) {
 }
 
 fn host_forward(x: &[f32], v: &[f32], g: &[f32], d: Dims) -> Vec<f32> {
-    let (ut, n) = host_products(x, v, d);
     let mut y = vec![0.0f32; d.b * d.o];
+    if d.i == 0 {
+        // Empty products are zero (and `||v||` is zero: no `0 / 0`).
+        return y;
+    }
+    let (ut, n) = host_products(x, v, d);
     for (b, yb) in y.chunks_exact_mut(d.o.max(1)).enumerate() {
         for (o, y) in yb.iter_mut().enumerate() {
             *y = (g[o] as f64 / n * ut[o * d.b + b]) as f32;
@@ -417,6 +426,23 @@ mod tests {
         assert!(max_rel(fused.x, composed.0) < 1e-5, "grad x");
         assert!(max_rel(fused.v, composed.1) < 1e-5, "grad v");
         assert!(max_rel(fused.g, composed.2) < 1e-5, "grad g");
+    }
+
+    /// Degenerate sizes stay finite: an empty batch gives zero gradients of `v` and `g` (not
+    /// `0 / 0` from a norm summed over no rows), no inputs give a zero output.
+    #[test]
+    fn empty_batch_and_inputs() {
+        let d = Dims { b: 0, i: 3, o: 2 };
+        let v = [1.0f32, -2.0, 0.5, 3.0, 0.0, -1.0];
+        let (dx, dv, dg) = host_backward(&[], &v, &[1.0, 2.0], &[], d);
+        assert!(dx.is_empty());
+        assert_eq!(dv, vec![0.0; 6]);
+        assert_eq!(dg, vec![0.0; 2]);
+        let (_, n) = host_products(&[], &v, d);
+        let want = v.iter().map(|v| (*v as f64).powi(2)).sum::<f64>().sqrt();
+        assert!((n - want).abs() < 1e-12, "{n} vs {want}");
+        let y = host_forward(&[], &[], &[1.0, 2.0], Dims { b: 2, i: 0, o: 2 });
+        assert_eq!(y, vec![0.0; 4]);
     }
 
     /// Central finite differences of `sum(wn_linear(x, v, g) · up)`, every entry of `x` and
