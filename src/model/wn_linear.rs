@@ -67,28 +67,38 @@ pub trait WnLinearBackend: Backend {
     /// `x · (g · v / ||v||)ᵀ` → `[B, O]`. Default: the weight norm's default body, then
     /// burn's matrix product.
     fn wn_linear(#[extension_type] xvg: XVG<Self>) -> FloatTensor<Self> {
-        let w = weight_norm::composed_forward::<Self>(VG { v: xvg.v, g: xvg.g }, 0);
-        Self::float_matmul(xvg.x, Self::float_transpose(w))
+        composed_forward::<Self>(xvg)
     }
 
     /// Backward from the inputs and the gradient of `y` → the gradients of `x`, `v` and `g`.
     /// Default: burn's matrix products, then the weight norm's default backward body.
     fn wn_linear_backward(#[extension_type] xvg: XVG<Self>, grad: FloatTensor<Self>) -> XVG<Self> {
-        let w = weight_norm::composed_forward::<Self>(
-            VG {
-                v: xvg.v.clone(),
-                g: xvg.g.clone(),
-            },
-            0,
-        );
-        let dx = Self::float_matmul(grad.clone(), w);
-        let dw = Self::float_matmul(Self::float_transpose(grad), xvg.x);
-        let d = weight_norm::composed_backward::<Self>(VG { v: xvg.v, g: xvg.g }, dw, 0);
-        XVG {
-            x: dx,
-            v: d.v,
-            g: d.g,
-        }
+        composed_backward::<Self>(xvg, grad)
+    }
+}
+
+/// The forward from burn's tensor ops (the trait's default body).
+fn composed_forward<B: Backend>(XVG { x, v, g }: XVG<B>) -> FloatTensor<B> {
+    let w = weight_norm::composed_forward::<B>(VG { v, g }, 0);
+    B::float_matmul(x, B::float_transpose(w))
+}
+
+/// The backward from burn's tensor ops (the trait's default body).
+fn composed_backward<B: Backend>(XVG { x, v, g }: XVG<B>, grad: FloatTensor<B>) -> XVG<B> {
+    let w = weight_norm::composed_forward::<B>(
+        VG {
+            v: v.clone(),
+            g: g.clone(),
+        },
+        0,
+    );
+    let dx = B::float_matmul(grad.clone(), w);
+    let dw = B::float_matmul(B::float_transpose(grad), x);
+    let d = weight_norm::composed_backward::<B>(VG { v, g }, dw, 0);
+    XVG {
+        x: dx,
+        v: d.v,
+        g: d.g,
     }
 }
 
@@ -326,7 +336,6 @@ impl<B: Backend + WnLinearBackend, C: CheckpointStrategy> WnLinearBackend for Au
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::backend::ops::FloatTensorOps;
     use burn::tensor::module::linear;
     use burn::tensor::{Device, Distribution, TensorData};
 
@@ -389,43 +398,15 @@ mod tests {
             crate::model::op_check::max_rel(&F::floats(a), &F::floats(b), 1e-6)
         };
         let fused = <F as WnLinearBackend>::wn_linear(xvg());
-        let composed = {
-            let w = weight_norm::composed_forward::<F>(
-                VG {
-                    v: v.clone(),
-                    g: g.clone(),
-                },
-                0,
-            );
-            F::float_matmul(x.clone(), F::float_transpose(w))
-        };
-        assert!(max_rel(fused, composed) < 1e-5, "forward");
+        assert!(
+            max_rel(fused, composed_forward::<F>(xvg())) < 1e-5,
+            "forward"
+        );
         let fused = <F as WnLinearBackend>::wn_linear_backward(xvg(), dy.clone());
-        let composed = {
-            // The trait's default body, step by step (flex itself implements the trait with
-            // the host passes).
-            let w = weight_norm::composed_forward::<F>(
-                VG {
-                    v: v.clone(),
-                    g: g.clone(),
-                },
-                0,
-            );
-            let dx = F::float_matmul(dy.clone(), w);
-            let dw = F::float_matmul(F::float_transpose(dy.clone()), x.clone());
-            let d = weight_norm::composed_backward::<F>(
-                VG {
-                    v: v.clone(),
-                    g: g.clone(),
-                },
-                dw,
-                0,
-            );
-            (dx, d.v, d.g)
-        };
-        assert!(max_rel(fused.x, composed.0) < 1e-5, "grad x");
-        assert!(max_rel(fused.v, composed.1) < 1e-5, "grad v");
-        assert!(max_rel(fused.g, composed.2) < 1e-5, "grad g");
+        let composed = composed_backward::<F>(xvg(), dy);
+        assert!(max_rel(fused.x, composed.x) < 1e-5, "grad x");
+        assert!(max_rel(fused.v, composed.v) < 1e-5, "grad v");
+        assert!(max_rel(fused.g, composed.g) < 1e-5, "grad g");
     }
 
     /// Degenerate sizes stay finite: an empty batch gives zero gradients of `v` and `g` (not
