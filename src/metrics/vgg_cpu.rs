@@ -292,30 +292,42 @@ impl VggCpu {
         VggCpu { layers }
     }
 
-    /// The five taps of one normalised image (and, with `keep_all`, every ReLU output).
-    fn features(&self, x: Map, keep_all: bool) -> Activations {
-        let mut outputs: Vec<Map> = Vec::with_capacity(self.layers.len());
+    /// The five taps of normalised images of one size, layer by layer for all of them
+    /// ([`Layer::forward_many`]), and, for image `i` with `keep_all[i]`, every ReLU output.
+    fn features(&self, xs: Vec<Map>, keep_all: &[bool]) -> Vec<Activations> {
+        let mut acts: Vec<Activations> = xs
+            .iter()
+            .map(|_| Activations {
+                outputs: Vec::with_capacity(self.layers.len()),
+            })
+            .collect();
         for (l, layer) in self.layers.iter().enumerate() {
-            let src = if l == 0 { &x } else { &outputs[l - 1] };
-            let pooled;
-            let input = if layer.pool_before {
-                pooled = max_pool(src, layer.ci);
-                &pooled
+            let srcs: Vec<&Map> = if l == 0 {
+                xs.iter().collect()
             } else {
-                src
+                acts.iter().map(|a| &a.outputs[l - 1]).collect()
             };
-            let y = Map {
-                data: layer.forward(&input.data, [input.h, input.w]),
-                h: input.h,
-                w: input.w,
+            let pooled: Vec<Map>;
+            let inputs: Vec<&Map> = if layer.pool_before {
+                pooled = srcs.iter().map(|m| max_pool(m, layer.ci)).collect();
+                pooled.iter().collect()
+            } else {
+                srcs
             };
-            // A map that is neither a tap nor wanted by the backward is freed once used.
-            if l > 0 && !(keep_all || self.layers[l - 1].tap) {
-                outputs[l - 1].data = Vec::new();
+            let Some(&&Map { h, w, .. }) = inputs.first() else {
+                return acts;
+            };
+            let data: Vec<&[f32]> = inputs.iter().map(|m| &m.data[..]).collect();
+            let ys = layer.forward_many(&data, [h, w]);
+            for ((act, data), &keep) in acts.iter_mut().zip(ys).zip(keep_all) {
+                // A map that is neither a tap nor wanted by the backward is freed once used.
+                if l > 0 && !(keep || self.layers[l - 1].tap) {
+                    act.outputs[l - 1].data = Vec::new();
+                }
+                act.outputs.push(Map { data, h, w });
             }
-            outputs.push(y);
         }
-        Activations { outputs }
+        acts
     }
 
     /// The perceptual loss of [`crate::metrics::VggPerceptual::forward`]: the sum over the
@@ -343,8 +355,14 @@ impl VggCpu {
         let mut per_image = Vec::with_capacity(n);
         for i in 0..n {
             let plane = 3 * h * w;
-            let fa = self.features(normalise(&a[i * plane..][..plane], h, w), keep[0]);
-            let fb = self.features(normalise(&b[i * plane..][..plane], h, w), keep[1]);
+            let pair = vec![
+                normalise(&a[i * plane..][..plane], h, w),
+                normalise(&b[i * plane..][..plane], h, w),
+            ];
+            let [fa, fb]: [Activations; 2] = self
+                .features(pair, &keep)
+                .try_into()
+                .expect("one set of activations per image");
             let mut signs = Vec::with_capacity(taps.len());
             for (t, &l) in taps.iter().enumerate() {
                 let (x, y) = (&fa.outputs[l].data, &fb.outputs[l].data);
@@ -561,13 +579,20 @@ fn conv3x3(
 }
 
 impl Layer {
-    /// The convolution, its bias and its ReLU: `[H·W, C_in]` → `[H·W, C_out]`.
-    fn forward(&self, x: &[f32], hw: [usize; 2]) -> Vec<f32> {
+    /// The convolution, its bias and its ReLU of maps of one size: `[H·W, C_in]` →
+    /// `[H·W, C_out]` each. A Winograd layer runs them together where they fit one shared
+    /// block ([`winograd_many`]).
+    fn forward_many(&self, xs: &[&[f32]], hw: [usize; 2]) -> Vec<Vec<f32>> {
         match self.winograd {
-            None => conv3x3(x, hw, self.ci, &self.w, self.co, Some(&self.bias)),
+            None => xs
+                .iter()
+                .map(|x| conv3x3(x, hw, self.ci, &self.w, self.co, Some(&self.bias)))
+                .collect(),
             Some(kind) => {
                 let epilogue = Epilogue::BiasRelu(&self.bias);
-                conv3x3_winograd(x, hw, [self.ci, self.co], (&self.u, kind), epilogue)
+                let weights = (&self.u[..], kind);
+                let channels = [self.ci, self.co];
+                winograd_many(xs, hw, channels, weights, epilogue, WINOGRAD_SHARED)
             }
         }
     }
@@ -754,48 +779,75 @@ enum Epilogue<'a> {
 /// mapping with it).
 fn winograd_mapped(
     x: &[f32],
+    hw: [usize; 2],
+    channels: [usize; 2],
+    weights: (&[f32], &Winograd),
+    epilogue: Epilogue,
+    shared: usize,
+) -> Vec<f32> {
+    let mut out = winograd_many(&[x], hw, channels, weights, epilogue, shared);
+    out.pop().unwrap_or_default()
+}
+
+/// [`winograd_mapped`] of several maps of the same size with the same weights (the two
+/// images of a loss evaluation): where their transformed tiles fit one shared block
+/// together, the α² products take the tiles of all of them, so each `U_ξ` is packed and
+/// read from memory once for all (VGG16's 512-channel layers read 16 MiB of weights per
+/// map: on the 12 x 8 maps of conv5 at 138 x 200 the products were bound by that). A
+/// [`Epilogue::ReluMask`] belongs to one map, so it takes one map.
+fn winograd_many(
+    xs: &[&[f32]],
     [h, w]: [usize; 2],
     [ci, co]: [usize; 2],
     (u, kind): (&[f32], &Winograd),
     epilogue: Epilogue,
     shared: usize,
-) -> Vec<f32> {
-    debug_assert_eq!(x.len(), h * w * ci);
+) -> Vec<Vec<f32>> {
+    debug_assert!(xs.iter().all(|x| x.len() == h * w * ci));
     debug_assert_eq!(u.len(), kind.products() * ci * co);
     if let Epilogue::ReluMask(y) = epilogue {
+        assert_eq!(xs.len(), 1, "Winograd: a ReLU mask belongs to one map");
         assert_eq!(y.len(), h * w * co, "Winograd: ReLU mask shape");
     }
     if h == 0 || w == 0 || co == 0 {
-        return vec![0.0f32; h * w * co];
+        return vec![vec![0.0f32; h * w * co]; xs.len()];
     }
     // Written, never read, before every pixel is written (each belongs to one tile): no
     // zeroing pass first.
     let len = h * w * co;
-    let mut out: Vec<f32> = Vec::with_capacity(len);
-    let dst = &mut out.spare_capacity_mut()[..len];
-    winograd_tiles(x, [h, w], [ci, co], (u, kind), epilogue, shared, dst);
-    // SAFETY: `winograd_tiles` wrote all `len` values of `dst` (see `write_tile_row`).
-    unsafe { out.set_len(len) };
-    out
+    let mut outs: Vec<Vec<f32>> = xs.iter().map(|_| Vec::with_capacity(len)).collect();
+    let mut dst: Vec<_> = outs
+        .iter_mut()
+        .map(|o| &mut o.spare_capacity_mut()[..len])
+        .collect();
+    winograd_tiles(xs, [h, w], [ci, co], (u, kind), epilogue, shared, &mut dst);
+    for o in &mut outs {
+        // SAFETY: `winograd_tiles` wrote all `len` values of each `dst` (see
+        // `write_tile_row`).
+        unsafe { o.set_len(len) };
+    }
+    outs
 }
 
-/// [`winograd_mapped`]'s work on its uninitialised output `out` `[H·W, C_out]`, every value
-/// of which it writes.
+/// [`winograd_many`]'s work on its uninitialised outputs `outs` (`[H·W, C_out]` each, one
+/// per map of `xs`), every value of which it writes.
 #[allow(clippy::too_many_arguments)]
 fn winograd_tiles(
-    x: &[f32],
+    xs: &[&[f32]],
     [h, w]: [usize; 2],
     [ci, co]: [usize; 2],
     (u, kind): (&[f32], &Winograd),
     epilogue: Epilogue,
     shared: usize,
-    out: &mut [MaybeUninit<f32>],
+    outs: &mut [&mut [MaybeUninit<f32>]],
 ) {
     let (m, a, n) = (kind.m, kind.alpha(), kind.products());
     let (tiles_h, tiles_w) = (h.div_ceil(m), w.div_ceil(m));
     let zero = vec![0.0f32; ci];
-    // Transforms one α x α input tile (tile row `ty`, column `tx`) into `vt` `[α², C_in]`.
-    let transform = |ty: usize, tx: usize, vt: &mut [f32], t: &mut [f32]| {
+    // Transforms one α x α input tile (map `i`, tile row `ty`, column `tx`) into `vt`
+    // `[α², C_in]`.
+    let transform = |i: usize, ty: usize, tx: usize, vt: &mut [f32], t: &mut [f32]| {
+        let x = xs[i];
         let mut d: [&[f32]; MAX_PRODUCTS] = [&zero[..]; MAX_PRODUCTS];
         for dy in 0..a {
             let sy = m * ty + dy;
@@ -816,8 +868,27 @@ fn winograd_tiles(
     // `U_ξ` as the `[C_in, C_out]` right-hand side of product ξ.
     let weights = |xi: usize| &u[xi * ci * co..][..ci * co];
     let row_floats = tiles_w * n * (ci + co);
-    if tiles_h * row_floats <= shared {
-        let nt = tiles_h * tiles_w;
+    let maps = xs.len();
+    if maps > 1 && tiles_h * row_floats > shared / maps {
+        // Too large to share one block: map by map.
+        for (x, out) in xs.iter().zip(outs.iter_mut()) {
+            let weights = (u, kind);
+            winograd_tiles(
+                &[x],
+                [h, w],
+                [ci, co],
+                weights,
+                epilogue,
+                shared,
+                &mut [out],
+            );
+        }
+        return;
+    }
+    if maps * tiles_h * row_floats <= shared {
+        // Tiles of map `i` from `i · per_map` on.
+        let per_map = tiles_h * tiles_w;
+        let nt = maps * per_map;
         // Empty when a call further up this thread holds them: then they grow fresh.
         let (mut v, mut mm) = WINOGRAD_SCRATCH.take();
         v.resize(nt * n * ci, 0.0);
@@ -825,10 +896,10 @@ fn winograd_tiles(
         // V: [tile, ξ, C_in], one task per tile row.
         v.par_chunks_mut(tiles_w * n * ci)
             .enumerate()
-            .for_each_init(Vec::new, |t: &mut Vec<f32>, (ty, vr)| {
+            .for_each_init(Vec::new, |t: &mut Vec<f32>, (r, vr)| {
                 t.resize(n * ci, 0.0);
                 for (tx, vt) in vr.chunks_exact_mut(n * ci).enumerate() {
-                    transform(ty, tx, vt, t);
+                    transform(r / tiles_h, r % tiles_h, tx, vt, t);
                 }
             });
         // M: [ξ, tile, C_out], one task per ξ.
@@ -845,19 +916,25 @@ fn winograd_tiles(
             );
         });
         let products = &mm[..];
-        out.par_chunks_mut(m * w * co).enumerate().for_each_init(
-            Vec::new,
-            |s: &mut Vec<f32>, (ty, group)| {
-                s.resize((m * a + m) * co, 0.0);
-                let at = ty * m * w * co;
-                write_tile_row(kind, (group, at), [w, co], s, epilogue, |tx, xi| {
-                    &products[(xi * nt + ty * tiles_w + tx) * co..][..co]
-                });
-            },
-        );
+        for (i, out) in outs.iter_mut().enumerate() {
+            out.par_chunks_mut(m * w * co).enumerate().for_each_init(
+                Vec::new,
+                |s: &mut Vec<f32>, (ty, group)| {
+                    s.resize((m * a + m) * co, 0.0);
+                    let at = ty * m * w * co;
+                    let first = i * per_map + ty * tiles_w;
+                    write_tile_row(kind, (group, at), [w, co], s, epilogue, |tx, xi| {
+                        &products[(xi * nt + first + tx) * co..][..co]
+                    });
+                },
+            );
+        }
         WINOGRAD_SCRATCH.set((v, mm));
         return;
     }
+    let [out] = outs else {
+        unreachable!("several maps go one by one unless they share a block");
+    };
     let threads = rayon::current_num_threads().max(1);
     let mut blocks = tiles_h.div_ceil((WINOGRAD_BLOCK / row_floats).max(1));
     blocks = blocks.div_ceil(threads) * threads;
@@ -873,7 +950,7 @@ fn winograd_tiles(
                 s.resize((n * ci).max((m * a + m) * co), 0.0);
                 // V: [tile, ξ, C_in].
                 for (t, vt) in v.chunks_exact_mut(n * ci).enumerate() {
-                    transform(bi * rows + t / tiles_w, t % tiles_w, vt, s);
+                    transform(0, bi * rows + t / tiles_w, t % tiles_w, vt, s);
                 }
                 // M: [tile, ξ, C_out].
                 for xi in 0..n {
@@ -1533,6 +1610,8 @@ mod tests {
                 let back = rotated_column_weights(&oihw, ci, co);
                 let u_back = winograd_weights(&back, co, ci, kind);
                 let want_y = direct(&x, [h, w], ci, &oihw, co, &bias);
+                let x2 = values(h * w * ci, 14);
+                let want_y2 = direct(&x2, [h, w], ci, &oihw, co, &bias);
                 let dy = values(h * w * co, 7);
                 let want_dx = direct_input_gradient(&dy, [h, w], co, &oihw, ci);
                 // A ReLU output for the mask: `values` is negative about half the time.
@@ -1548,6 +1627,17 @@ mod tests {
                     let y = winograd_mapped(&x, [h, w], [ci, co], (&u, kind), bias, shared);
                     let e = max_rel(&y, &want_y);
                     assert!(e < 1e-5, "F{m} forward {h}x{w} {ci}->{co}, {shared}: {e}");
+                    // Two maps together: in one shared block (`usize::MAX`), by one
+                    // (a limit that fits one map's tiles, not both), or in blocks (0).
+                    let one = (h.div_ceil(m) * w.div_ceil(m)) * kind.products() * (ci + co);
+                    for limit in [shared, one] {
+                        let ys =
+                            winograd_many(&[&x, &x2], [h, w], [ci, co], (&u, kind), bias, limit);
+                        for (y, want) in ys.iter().zip([&want_y, &want_y2]) {
+                            let e = max_rel(y, want);
+                            assert!(e < 1e-5, "F{m} pair {h}x{w} {ci}->{co}, {limit}: {e}");
+                        }
+                    }
                     let back = (&u_back[..], kind);
                     let dx = winograd_mapped(&dy, [h, w], [co, ci], back, Epilogue::None, shared);
                     let e = max_rel(&dx, &want_dx);
