@@ -45,7 +45,11 @@
 //! threads instead. A Winograd convolution does the same with blocks of tile rows
 //! (`WINOGRAD_BLOCK` floats of transformed tiles), except on a map small enough to be one
 //! block (`WINOGRAD_SHARED`): there the transforms are parallel over tile rows and the α²
-//! products over ξ. Pooling is parallel over output rows.
+//! products over ξ. In the forward pass the two images of a loss evaluation go through
+//! each Winograd layer together where the tiles of both fit that shared block
+//! (`winograd_many`; conv3 on at 138 x 200): the α² products take the tiles of both, so
+//! each `U_ξ` is packed and read once for the pair. Pooling is parallel over output rows,
+//! its scan branch-free in vector lanes.
 //!
 //! The reference twin is burn's own `Conv2d` / `max_pool2d` / `relu` stack
 //! ([`crate::metrics::Features`]); `crate::metrics::perceptual`'s tests compare the loss and
@@ -1031,24 +1035,43 @@ fn write_tile_row<'a>(
     }
 }
 
-/// `V = Bᵀ d B` of one α x α tile of channel vectors `d` (row-major, each `c` long) into `v`
-/// `[α², c]` for `kind`; `t` is scratch of `α²·c` floats. The transforms are written out
-/// per algorithm (the tests check them against [`Winograd`]'s matrices): every step is one
-/// pass over channel vectors, in AVX2's lanes where the CPU has them.
-fn input_transform(kind: &Winograd, d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { input_transform_avx2(kind, d, v, t, c) };
-    }
-    input_transform_generic(kind, d, v, t, c);
+/// Defines `$name`, which runs `$generic` (an `#[inline(always)]` function of the same
+/// arguments) compiled for AVX2 where the CPU has it, detected at run time, and as compiled
+/// for the baseline otherwise. The element-wise passes of this file (the Winograd
+/// transforms, pooling) are plain loops over channel vectors that the compiler vectorises
+/// for the lanes it may use; this gives them AVX2's.
+macro_rules! with_avx2 {
+    ($(#[$doc:meta])* fn $name:ident = $generic:ident($($arg:ident: $ty:ty),* $(,)?)) => {
+        $(#[$doc])*
+        fn $name($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                fn avx2($($arg: $ty),*) {
+                    $generic($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU supports AVX2 (checked just above).
+                    return unsafe { avx2($($arg),*) };
+                }
+            }
+            $generic($($arg),*)
+        }
+    };
 }
 
-/// [`input_transform`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn input_transform_avx2(kind: &Winograd, d: &[&[f32]], v: &mut [f32], t: &mut [f32], c: usize) {
-    input_transform_generic(kind, d, v, t, c);
+with_avx2! {
+    /// `V = Bᵀ d B` of one α x α tile of channel vectors `d` (row-major, each `c` long) into
+    /// `v` `[α², c]` for `kind`; `t` is scratch of `α²·c` floats. The transforms are written
+    /// out per algorithm (the tests check them against [`Winograd`]'s matrices): every step is
+    /// one pass over channel vectors, in AVX2's lanes where the CPU has them.
+    fn input_transform = input_transform_generic(
+        kind: &Winograd,
+        d: &[&[f32]],
+        v: &mut [f32],
+        t: &mut [f32],
+        c: usize
+    )
 }
 
 #[inline(always)]
@@ -1156,37 +1179,19 @@ fn at_f4(m: [&[f32]; 6], o: &mut [f32], c: usize) {
 /// edge (and past the tile's `m²`).
 type TilePixels<'a> = [Option<&'a mut [MaybeUninit<f32>]>; MAX_PIXELS];
 
-/// `Y = Aᵀ M A` of one tile's α² products `m` (each `c` long) into its m x m output pixels
-/// `y` (row-major; `None` past the map's edge) for `kind`, plus `bias` and the ReLU when
-/// given, or zero where the pixel's `mask` (when given) is not positive ([`write_pixel`]).
-/// `s` is scratch of `(m·α + m)·c` floats. Written out per algorithm, as
-/// [`input_transform`].
-fn output_transform(
-    kind: &Winograd,
-    m: &[&[f32]],
-    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
-    s: &mut [f32],
-    (c, bias): (usize, Option<&[f32]>),
-) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { output_transform_avx2(kind, m, (y, mask), s, (c, bias)) };
-    }
-    output_transform_generic(kind, m, (y, mask), s, (c, bias));
-}
-
-/// [`output_transform`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn output_transform_avx2(
-    kind: &Winograd,
-    m: &[&[f32]],
-    (y, mask): (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
-    s: &mut [f32],
-    (c, bias): (usize, Option<&[f32]>),
-) {
-    output_transform_generic(kind, m, (y, mask), s, (c, bias));
+with_avx2! {
+    /// `Y = Aᵀ M A` of one tile's α² products `m` (each `c` long) into its m x m output pixels
+    /// `y` (row-major; `None` past the map's edge) for `kind`, plus `bias` and the ReLU when
+    /// given, or zero where the pixel's `mask` (when given) is not positive ([`write_pixel`]).
+    /// `s` is scratch of `(m·α + m)·c` floats. Written out per algorithm, as
+    /// [`input_transform`].
+    fn output_transform = output_transform_generic(
+        kind: &Winograd,
+        m: &[&[f32]],
+        pixels: (TilePixels, [Option<&[f32]>; MAX_PIXELS]),
+        s: &mut [f32],
+        channels: (usize, Option<&[f32]>)
+    )
 }
 
 #[inline(always)]
@@ -1289,23 +1294,11 @@ fn max_pool(x: &Map, c: usize) -> Map {
     Map { data, h: ho, w: wo }
 }
 
-/// One output row of [`max_pool`] from the two input rows under it, in AVX2's lanes where
-/// the CPU has them (the scan's comparisons are data-dependent: as branches they were
-/// mispredicted about half the time, 3 ms for VGG16's first pool at 138 x 200).
-fn pool_row(out: &mut [f32], x: [&[f32]; 2], c: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { pool_row_avx2(out, x, c) };
-    }
-    pool_row_generic(out, x, c);
-}
-
-/// [`pool_row`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn pool_row_avx2(out: &mut [f32], x: [&[f32]; 2], c: usize) {
-    pool_row_generic(out, x, c);
+with_avx2! {
+    /// One output row of [`max_pool`] from the two input rows under it, in AVX2's lanes where
+    /// the CPU has them (the scan's comparisons are data-dependent: as branches they were
+    /// mispredicted about half the time, 3 ms for VGG16's first pool at 138 x 200).
+    fn pool_row = pool_row_generic(out: &mut [f32], x: [&[f32]; 2], c: usize)
 }
 
 #[inline(always)]
@@ -1373,30 +1366,18 @@ fn pool_relu_backward(
 /// gradients and their scale.
 type TapRows<'a> = Option<((&'a [f32], &'a [f32]), f32)>;
 
-/// The `2·W_o` covered pixels of the two input rows `d` under one output row of
-/// [`pool_relu_backward`] (`x` the ReLU's output there, `g` the output row's gradient
-/// `[W_o·C]`), in AVX2's lanes where the CPU has them: written branch-free, as
-/// [`pool_row`].
-fn pool_backward_rows(d: [&mut [f32]; 2], x: (&[f32], &[f32]), g: &[f32], tap: TapRows, c: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked just above).
-        return unsafe { pool_backward_rows_avx2(d, x, g, tap, c) };
-    }
-    pool_backward_rows_generic(d, x, g, tap, c);
-}
-
-/// [`pool_backward_rows`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn pool_backward_rows_avx2(
-    d: [&mut [f32]; 2],
-    x: (&[f32], &[f32]),
-    g: &[f32],
-    tap: TapRows,
-    c: usize,
-) {
-    pool_backward_rows_generic(d, x, g, tap, c);
+with_avx2! {
+    /// The `2·W_o` covered pixels of the two input rows `d` under one output row of
+    /// [`pool_relu_backward`] (`x` the ReLU's output there, `g` the output row's gradient
+    /// `[W_o·C]`), in AVX2's lanes where the CPU has them: written branch-free, as
+    /// [`pool_row`].
+    fn pool_backward_rows = pool_backward_rows_generic(
+        d: [&mut [f32]; 2],
+        x: (&[f32], &[f32]),
+        g: &[f32],
+        tap: TapRows,
+        c: usize
+    )
 }
 
 #[inline(always)]
