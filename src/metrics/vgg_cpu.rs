@@ -936,48 +936,48 @@ fn winograd_tiles(
         WINOGRAD_SCRATCH.set((v, mm));
         return;
     }
-    let [out] = outs else {
-        unreachable!("several maps go one by one unless they share a block");
-    };
     let threads = rayon::current_num_threads().max(1);
     let mut blocks = tiles_h.div_ceil((WINOGRAD_BLOCK / row_floats).max(1));
     blocks = blocks.div_ceil(threads) * threads;
     let rows = tiles_h.div_ceil(blocks.min(tiles_h));
-    out.par_chunks_mut(m * rows * w * co)
-        .enumerate()
-        .for_each_init(
-            || (Vec::new(), Vec::new(), Vec::new()),
-            |(v, mm, s): &mut (Vec<f32>, Vec<f32>, Vec<f32>), (bi, o)| {
-                let nt = (o.len() / (w * co)).div_ceil(m) * tiles_w;
-                v.resize(nt * n * ci, 0.0);
-                mm.resize(nt * n * co, 0.0);
-                s.resize((n * ci).max((m * a + m) * co), 0.0);
-                // V: [tile, ξ, C_in].
-                for (t, vt) in v.chunks_exact_mut(n * ci).enumerate() {
-                    transform(0, bi * rows + t / tiles_w, t % tiles_w, vt, s);
-                }
-                // M: [tile, ξ, C_out].
-                for xi in 0..n {
-                    matmul_serial(
-                        [nt, co, ci],
-                        &mut mm[xi * co..],
-                        [n * co, 1],
-                        false,
-                        &v[xi * ci..],
-                        [n * ci, 1],
-                        weights(xi),
-                        [co, 1],
-                    );
-                }
-                for (r, group) in o.chunks_mut(m * w * co).enumerate() {
-                    let mr = &mm[r * tiles_w * n * co..];
-                    let at = (bi * rows + r) * m * w * co;
-                    write_tile_row(kind, (group, at), [w, co], s, epilogue, |tx, xi| {
-                        &mr[(tx * n + xi) * co..][..co]
-                    });
-                }
-            },
-        );
+    // In blocks, map by map (one map here: several share a block or went one by one above).
+    for (i, out) in outs.iter_mut().enumerate() {
+        out.par_chunks_mut(m * rows * w * co)
+            .enumerate()
+            .for_each_init(
+                || (Vec::new(), Vec::new(), Vec::new()),
+                |(v, mm, s): &mut (Vec<f32>, Vec<f32>, Vec<f32>), (bi, o)| {
+                    let nt = (o.len() / (w * co)).div_ceil(m) * tiles_w;
+                    v.resize(nt * n * ci, 0.0);
+                    mm.resize(nt * n * co, 0.0);
+                    s.resize((n * ci).max((m * a + m) * co), 0.0);
+                    // V: [tile, ξ, C_in].
+                    for (t, vt) in v.chunks_exact_mut(n * ci).enumerate() {
+                        transform(i, bi * rows + t / tiles_w, t % tiles_w, vt, s);
+                    }
+                    // M: [tile, ξ, C_out].
+                    for xi in 0..n {
+                        matmul_serial(
+                            [nt, co, ci],
+                            &mut mm[xi * co..],
+                            [n * co, 1],
+                            false,
+                            &v[xi * ci..],
+                            [n * ci, 1],
+                            weights(xi),
+                            [co, 1],
+                        );
+                    }
+                    for (r, group) in o.chunks_mut(m * w * co).enumerate() {
+                        let mr = &mm[r * tiles_w * n * co..];
+                        let at = (bi * rows + r) * m * w * co;
+                        write_tile_row(kind, (group, at), [w, co], s, epilogue, |tx, xi| {
+                            &mr[(tx * n + xi) * co..][..co]
+                        });
+                    }
+                },
+            );
+    }
 }
 
 /// The output transform of one row of tiles into `group`, the (up to `m`) output rows it
