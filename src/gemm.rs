@@ -82,6 +82,23 @@ pub fn matmul_uninit(
     matmul_into_uninit(mnk, dst, [n, 1], lhs, lhs_strides, rhs, rhs_strides);
 }
 
+/// [`matmul_uninit`] on the calling thread only (one task of a parallel loop).
+///
+/// # Panics
+/// As [`matmul_uninit`].
+pub fn matmul_serial_uninit(
+    mnk: [usize; 3],
+    dst: &mut [MaybeUninit<f32>],
+    lhs: &[f32],
+    lhs_strides: [usize; 2],
+    rhs: &[f32],
+    rhs_strides: [usize; 2],
+) {
+    let [m, n, _] = mnk;
+    assert_eq!(dst.len(), m * n, "matmul_serial_uninit: dst is not m x n");
+    uninit_product(false, mnk, dst, [n, 1], lhs, lhs_strides, rhs, rhs_strides);
+}
+
 /// [`matmul_uninit`] with explicit `dst` strides: the `m·n` values they address are
 /// written and none is read; the others are left as they were (a block of columns of a
 /// larger matrix, say).
@@ -97,13 +114,37 @@ pub fn matmul_into_uninit(
     rhs: &[f32],
     rhs_strides: [usize; 2],
 ) {
-    // SAFETY: `f32` and `MaybeUninit<f32>` have one layout; `product` writes the `m·n`
+    uninit_product(
+        true,
+        mnk,
+        dst,
+        dst_strides,
+        lhs,
+        lhs_strides,
+        rhs,
+        rhs_strides,
+    );
+}
+
+/// The product into uninitialised `dst`, on rayon's threads when `parallel`.
+#[allow(clippy::too_many_arguments)]
+fn uninit_product(
+    parallel: bool,
+    mnk: [usize; 3],
+    dst: &mut [MaybeUninit<f32>],
+    dst_strides: [usize; 2],
+    lhs: &[f32],
+    lhs_strides: [usize; 2],
+    rhs: &[f32],
+    rhs_strides: [usize; 2],
+) {
+    // SAFETY: `f32` and `MaybeUninit<f32>` have one layout; `product_raw` writes the `m·n`
     // addressed values (inside `dst`, which it asserts) without reading them when
     // `accumulate` is false.
     let (ptr, len) = (dst.as_mut_ptr().cast::<f32>(), dst.len());
     unsafe {
         product_raw(
-            true,
+            parallel,
             mnk,
             (ptr, len),
             dst_strides,
@@ -323,37 +364,45 @@ mod tests {
 
     /// Into a fresh buffer that was never zeroed (filled with NaN first, so a value left
     /// unwritten or read would show), including `k = 0` and a size above
-    /// [`PARALLEL_WORK`].
+    /// [`PARALLEL_WORK`], on rayon's threads and on the calling thread.
     #[test]
     fn uninit_product_writes_every_value() {
-        for mnk in [[3, 5, 4], [1, 1, 1], [4, 3, 0], [67, 45, 33]] {
-            let [m, n, k] = mnk;
-            let lhs: Vec<f32> = (0..m * k)
-                .map(|i| ((i * 7 % 13) as f32 - 6.0) / 4.0)
-                .collect();
-            let rhs: Vec<f32> = (0..k * n)
-                .map(|i| ((i * 5 % 11) as f32 - 5.0) / 3.0)
-                .collect();
-            let mut dst: Vec<f32> = Vec::with_capacity(m * n);
-            dst.spare_capacity_mut()
-                .iter_mut()
-                .for_each(|v| _ = v.write(f32::NAN));
-            matmul_uninit(
-                mnk,
-                &mut dst.spare_capacity_mut()[..m * n],
-                &lhs,
-                [k, 1],
-                &rhs,
-                [n, 1],
-            );
-            // SAFETY: `matmul_uninit` wrote all `m·n` values.
-            unsafe { dst.set_len(m * n) };
-            let want = naive(mnk, &lhs, &rhs);
-            for (a, b) in dst.iter().zip(&want) {
-                assert!(
-                    (a - b).abs() <= 1e-4 * b.abs().max(1.0),
-                    "{mnk:?}: {a} vs {b}"
+        type Uninit =
+            fn([usize; 3], &mut [MaybeUninit<f32>], &[f32], [usize; 2], &[f32], [usize; 2]);
+        let products: [(&str, Uninit); 2] = [
+            ("matmul_uninit", matmul_uninit),
+            ("matmul_serial_uninit", matmul_serial_uninit),
+        ];
+        for (name, product) in products {
+            for mnk in [[3, 5, 4], [1, 1, 1], [4, 3, 0], [67, 45, 33]] {
+                let [m, n, k] = mnk;
+                let lhs: Vec<f32> = (0..m * k)
+                    .map(|i| ((i * 7 % 13) as f32 - 6.0) / 4.0)
+                    .collect();
+                let rhs: Vec<f32> = (0..k * n)
+                    .map(|i| ((i * 5 % 11) as f32 - 5.0) / 3.0)
+                    .collect();
+                let mut dst: Vec<f32> = Vec::with_capacity(m * n);
+                dst.spare_capacity_mut()
+                    .iter_mut()
+                    .for_each(|v| _ = v.write(f32::NAN));
+                product(
+                    mnk,
+                    &mut dst.spare_capacity_mut()[..m * n],
+                    &lhs,
+                    [k, 1],
+                    &rhs,
+                    [n, 1],
                 );
+                // SAFETY: the product wrote all `m·n` values.
+                unsafe { dst.set_len(m * n) };
+                let want = naive(mnk, &lhs, &rhs);
+                for (a, b) in dst.iter().zip(&want) {
+                    assert!(
+                        (a - b).abs() <= 1e-4 * b.abs().max(1.0),
+                        "{name} {mnk:?}: {a} vs {b}"
+                    );
+                }
             }
         }
     }
