@@ -77,9 +77,7 @@ pub fn matmul_uninit(
     rhs: &[f32],
     rhs_strides: [usize; 2],
 ) {
-    let [m, n, _] = mnk;
-    assert_eq!(dst.len(), m * n, "matmul_uninit: dst is not m x n");
-    matmul_into_uninit(mnk, dst, [n, 1], lhs, lhs_strides, rhs, rhs_strides);
+    dense_uninit(true, mnk, dst, lhs, lhs_strides, rhs, rhs_strides);
 }
 
 /// [`matmul_uninit`] on the calling thread only (one task of a parallel loop).
@@ -94,9 +92,32 @@ pub fn matmul_serial_uninit(
     rhs: &[f32],
     rhs_strides: [usize; 2],
 ) {
+    dense_uninit(false, mnk, dst, lhs, lhs_strides, rhs, rhs_strides);
+}
+
+/// [`matmul_uninit`] and [`matmul_serial_uninit`]: the product into a dense `dst` of `m·n`
+/// values, on rayon's threads when `parallel`.
+fn dense_uninit(
+    parallel: bool,
+    mnk: [usize; 3],
+    dst: &mut [MaybeUninit<f32>],
+    lhs: &[f32],
+    lhs_strides: [usize; 2],
+    rhs: &[f32],
+    rhs_strides: [usize; 2],
+) {
     let [m, n, _] = mnk;
-    assert_eq!(dst.len(), m * n, "matmul_serial_uninit: dst is not m x n");
-    uninit_product(false, mnk, dst, [n, 1], lhs, lhs_strides, rhs, rhs_strides);
+    assert_eq!(dst.len(), m * n, "matmul_uninit: dst is not m x n");
+    uninit_product(
+        parallel,
+        mnk,
+        dst,
+        [n, 1],
+        lhs,
+        lhs_strides,
+        rhs,
+        rhs_strides,
+    );
 }
 
 /// [`matmul_uninit`] with explicit `dst` strides: the `m·n` values they address are

@@ -40,9 +40,8 @@
 //!   (`pool_relu_backward`); the loss's sum and the taps' gradients are one pass.
 //!
 //! Thread mapping: a column convolution splits its pixels into blocks (a multiple of
-//! rayon's thread count, each column matrix at most `COL_BLOCK` floats) and runs the blocks
-//! on rayon, one single-threaded product each; with one block, its product runs on all
-//! threads instead. A Winograd convolution does the same with blocks of tile rows
+//! rayon's thread count, each column matrix and each output at most `COL_BLOCK` floats) and
+//! runs the blocks on rayon, one single-threaded product each. A Winograd convolution does the same with blocks of tile rows
 //! (`WINOGRAD_BLOCK` floats of transformed tiles), except on a map small enough to be one
 //! block (`WINOGRAD_SHARED`): there the transforms are parallel over tile rows and the α²
 //! products over ξ. In the forward pass the two images of a loss evaluation go through
@@ -594,8 +593,8 @@ fn conv3x3(
     let threads = rayon::current_num_threads().max(1);
     let mut blocks = p.div_ceil((COL_BLOCK / k.max(co)).max(1));
     blocks = blocks.div_ceil(threads) * threads;
+    // At least as many blocks as threads, so each product runs on one thread.
     let block = p.div_ceil(blocks.min(p));
-    let one_block = block >= p;
     // Written whole by the products, never read before: no zeroing pass first.
     let mut out = Vec::with_capacity(len);
     out.spare_capacity_mut()[..len]
@@ -605,12 +604,7 @@ fn conv3x3(
             let np = o.len() / co;
             col.resize(np * k, 0.0);
             im2col(x, [h, w], ci, bi * block, col);
-            let product = if one_block {
-                matmul_uninit
-            } else {
-                matmul_serial_uninit
-            };
-            product([np, co, k], o, col, [k, 1], wm, [co, 1]);
+            matmul_serial_uninit([np, co, k], o, col, [k, 1], wm, [co, 1]);
             // SAFETY: the product wrote all `np·co` values of `o`; `f32` and
             // `MaybeUninit<f32>` have one layout.
             let o =
