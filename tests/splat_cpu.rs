@@ -8,7 +8,9 @@ use burn::tensor::Device;
 use burn::tensor::{Tensor, TensorData};
 use common::{Outcome, Scene, assert_close, fixture, fused, ndarray, random_scene, reference, run};
 use texavatars::splat::cpu;
-use texavatars::splat::{render, render_reference, render_reference_tapped, render_tapped};
+use texavatars::splat::{
+    render, render_packed, render_reference, render_reference_tapped, render_tapped,
+};
 
 #[test]
 fn fixtures_cpu_and_reference() {
@@ -296,4 +298,68 @@ fn bad_shapes_are_reported() {
     g.cov6 = g.cov6.narrow(1, 0, 5);
     let e = render(&g, &s.params).unwrap_err().to_string();
     assert!(e.contains("cov6"), "{e}");
+}
+
+/// `render_packed` (the training path: the lifting operator's `[N, 13]` output straight into
+/// the renderer) gives the image, the transmittance and, column by column, the gradients of
+/// `render` on the four separate tensors, on both CPU backends with autodiff and without.
+#[test]
+fn packed_inputs_render_and_differentiate_as_separate_ones() {
+    use texavatars::lift::constants::{OUT_CHANNELS, OUT_COV, OUT_MEAN, OUT_OPACITY, OUT_RGB};
+    let scene = random_scene(90, 35, 27, 21);
+    let (w, h) = scene.size();
+    let n = scene.len();
+    let tw: Vec<f32> = (0..w * h)
+        .map(|i| ((i * 31) % 7) as f32 / 3.0 - 1.0)
+        .collect();
+    let mut rows = vec![0.0f32; n * OUT_CHANNELS];
+    for (i, row) in rows.chunks_mut(OUT_CHANNELS).enumerate() {
+        row[OUT_MEAN..OUT_MEAN + 3].copy_from_slice(&scene.means[3 * i..3 * i + 3]);
+        row[OUT_COV..OUT_COV + 6].copy_from_slice(&scene.cov6[6 * i..6 * i + 6]);
+        row[OUT_RGB..OUT_RGB + 3].copy_from_slice(&scene.colors[3 * i..3 * i + 3]);
+        row[OUT_OPACITY] = scene.opacities[i];
+    }
+    for device in [ndarray(), Device::flex().autodiff()] {
+        let want = run(
+            &scene,
+            &device,
+            |g, s, p| render_tapped(g, s, p).expect("valid inputs"),
+            Some(&tw),
+        );
+        let packed =
+            Tensor::<2>::from_data(TensorData::new(rows.clone(), [n, OUT_CHANNELS]), &device)
+                .require_grad();
+        let r = render_packed(packed.clone(), &scene.params).expect("valid inputs");
+        let gw = Tensor::<3>::from_data(
+            TensorData::new(scene.grad_weights.clone(), [h, w, 3]),
+            &device,
+        );
+        let t = Tensor::<2>::from_data(TensorData::new(tw.clone(), [h, w]), &device);
+        let loss = (r.image.clone() * gw).sum() + (r.transmittance.clone() * t).sum();
+        let grads = loss.backward();
+        let host = |d: TensorData| d.iter::<f32>().collect::<Vec<f32>>();
+        assert_eq!(host(r.image.into_data()), want.image);
+        assert_eq!(host(r.transmittance.into_data()), want.transmittance);
+        let g = host(packed.grad(&grads).expect("packed is tracked").into_data());
+        let column = |from: usize, k: usize| -> Vec<f32> {
+            g.chunks(OUT_CHANNELS)
+                .flat_map(|row| row[from..from + k].to_vec())
+                .collect()
+        };
+        assert!(want.grad_means.iter().any(|&v| v != 0.0));
+        assert_eq!(column(OUT_MEAN, 3), want.grad_means);
+        assert_eq!(column(OUT_COV, 6), want.grad_cov6);
+        assert_eq!(column(OUT_RGB, 3), want.grad_colors);
+        assert_eq!(column(OUT_OPACITY, 1), want.grad_opacities);
+
+        // Without autodiff: the same image.
+        let inner = device.clone().inner();
+        let packed =
+            Tensor::<2>::from_data(TensorData::new(rows.clone(), [n, OUT_CHANNELS]), &inner);
+        let r = render_packed(packed, &scene.params).expect("valid inputs");
+        assert_eq!(host(r.image.into_data()), want.image);
+    }
+    let bad = Tensor::<2>::zeros([n, OUT_CHANNELS - 1], &ndarray());
+    let e = render_packed(bad, &scene.params).unwrap_err().to_string();
+    assert!(e.contains("packed") && e.contains("[N, 13]"), "{e}");
 }

@@ -182,13 +182,23 @@ fn check_shapes(local: &Tensor<3>, vertices: &Tensor<2>, params: &LiftParams) ->
 /// Lifts local maps [14, R, R] with posed vertices [V, 3] through the fused operator of the
 /// tensors' backend (differentiable w.r.t. both when the backend is autodiff).
 pub fn lift(local: Tensor<3>, vertices: Tensor<2>, params: &LiftParams) -> Result<Lifted> {
+    lift_packed(local, vertices, params).map(Lifted::unpack)
+}
+
+/// [`lift`] without the split: the operator's packed `[N, 13]` output (columns in the order
+/// of [`constants`]), as [`crate::splat::render_packed`] takes it.
+pub fn lift_packed(
+    local: Tensor<3>,
+    vertices: Tensor<2>,
+    params: &LiftParams,
+) -> Result<Tensor<2>> {
     check_shapes(&local, &vertices, params)?;
     let out = <burn::backend::Dispatch as LiftBackend>::lift(
         local.into_dispatch(),
         vertices.into_dispatch(),
         params.clone(),
     );
-    Ok(Lifted::unpack(Tensor::from_dispatch(out)))
+    Ok(Tensor::from_dispatch(out))
 }
 
 /// The same function in plain tensor ops ([`reference::lift`]).

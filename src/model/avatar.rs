@@ -382,12 +382,16 @@ impl Avatar {
         let mut renders = Vec::with_capacity(n);
         for (i, camera) in cameras.iter().enumerate() {
             let verts = vertices.clone().narrow(0, i, 1).squeeze_dim::<2>(0);
-            let g = self.gaussians(&maps, i, verts)?;
+            let packed = lift::lift_packed(maps.frame(i), verts, &self.lift.0)?;
             let params = SplatParams {
                 camera: *camera,
                 background: BACKGROUND,
             };
-            renders.push(splat::render(&g, &params)?.image.unsqueeze_dim::<4>(0));
+            renders.push(
+                splat::render_packed(packed, &params)?
+                    .image
+                    .unsqueeze_dim::<4>(0),
+            );
         }
         Ok(AvatarOutput {
             renders: Tensor::cat(renders, 0),

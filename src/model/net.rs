@@ -442,7 +442,13 @@ impl LocalMaps {
 
     /// Frame `i` of [`LocalMaps::packed`]: the [14, R, R] input of [`crate::lift::lift`].
     pub fn frame(&self, i: usize) -> Tensor<3> {
-        self.packed().narrow(0, i, 1).squeeze_dim::<3>(0)
+        let packed = self.packed();
+        if packed.dims()[0] == 1 && i == 0 {
+            // A narrow over the whole batch would still be a tracked slice, whose gradient
+            // autodiff builds as a zero-filled copy of the whole map.
+            return packed.squeeze_dim::<3>(0);
+        }
+        packed.narrow(0, i, 1).squeeze_dim::<3>(0)
     }
 }
 

@@ -98,6 +98,21 @@ pub trait SplatBackend: Backend {
         Self::splat_forward(inputs, params).out
     }
 
+    /// [`SplatBackend::splat`] of Gaussians packed as the lifting operator outputs them:
+    /// `packed` `[N, 13]` holds means, covariances, colours and opacities in the column
+    /// order of `crate::lift::constants` (`OUT_MEAN`, `OUT_COV`, `OUT_RGB`, `OUT_OPACITY`).
+    /// Under autodiff the gradient reaches `packed` as one `[N, 13]` tensor: splitting it
+    /// into four tracked column slices first would make autodiff build a zero-filled
+    /// `[N, 13]` gradient per slice and add the four (4.6% of a `cpu` training step's
+    /// profile went to such slice gradients, docs/performance.md).
+    fn splat_packed(
+        packed: FloatTensor<Self>,
+        screen: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> FloatTensor<Self> {
+        Self::splat(unpacked_inputs::<Self>(packed, screen), params)
+    }
+
     /// Forward pass, keeping what the backward pass needs.
     fn splat_forward(
         #[extension_type] inputs: SplatInputs<Self>,
@@ -111,6 +126,27 @@ pub trait SplatBackend: Backend {
         grad_out: FloatTensor<Self>,
         params: SplatParams,
     ) -> SplatGrads<Self>;
+}
+
+/// The four column blocks of a packed `[N, 13]` tensor as [`SplatInputs`] (views where the
+/// backend slices without copying).
+fn unpacked_inputs<B: Backend>(packed: FloatTensor<B>, screen: FloatTensor<B>) -> SplatInputs<B> {
+    use crate::lift::constants::{OUT_CHANNELS, OUT_COV, OUT_MEAN, OUT_OPACITY, OUT_RGB};
+    let n = packed.shape()[0];
+    debug_assert_eq!(packed.shape()[1], OUT_CHANNELS);
+    let columns = |from: usize, k: usize| {
+        B::float_slice(
+            packed.clone(),
+            &[Slice::from(0..n), Slice::from(from..from + k)],
+        )
+    };
+    SplatInputs {
+        means: columns(OUT_MEAN, 3),
+        cov6: columns(OUT_COV, 6),
+        colors: columns(OUT_RGB, 3),
+        opacities: B::float_reshape(columns(OUT_OPACITY, 1), Shape::from(vec![n])),
+        screen,
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -610,15 +646,9 @@ impl<B: Backend + SplatBackend> Backward<B, 5> for SplatBackward {
         let (inputs, state, params) = ops.state;
         let g = B::splat_backward(inputs, state, grad_out, params);
         let [means, cov6, colors, opacities, screen] = ops.parents;
-        // The tap's gradient in 3DGS's units: d/d(NDC) = d/d(pixel) * (W/2, H/2)
-        // (diff-gaussian-rasterization, `cuda_rasterizer/backward.cu`, `renderCUDA`:
-        // `ddelx_dx = 0.5 * W`, `ddely_dy = 0.5 * H`).
-        let screen_grad = screen.as_ref().map(|_| {
-            let (w, h) = (params.camera.width as f32, params.camera.height as f32);
-            let device = g.screen.device();
-            let half = B::float_from_data(TensorData::new(vec![0.5 * w, 0.5 * h], [1, 2]), &device);
-            B::float_mul(g.screen.clone(), half)
-        });
+        let screen_grad = screen
+            .as_ref()
+            .map(|_| screen_in_ndc::<B>(&g.screen, &params));
         for (node, grad) in [
             (means, Some(g.means)),
             (cov6, Some(g.cov6)),
@@ -630,6 +660,42 @@ impl<B: Backend + SplatBackend> Backward<B, 5> for SplatBackward {
                 continue;
             };
             grads.register::<B>(node.id, grad);
+        }
+    }
+}
+
+/// The tap's gradient in 3DGS's units: d/d(NDC) = d/d(pixel) * (W/2, H/2)
+/// (diff-gaussian-rasterization, `cuda_rasterizer/backward.cu`, `renderCUDA`:
+/// `ddelx_dx = 0.5 * W`, `ddely_dy = 0.5 * H`).
+fn screen_in_ndc<B: Backend>(pixels: &FloatTensor<B>, params: &SplatParams) -> FloatTensor<B> {
+    let (w, h) = (params.camera.width as f32, params.camera.height as f32);
+    let device = pixels.device();
+    let half = B::float_from_data(TensorData::new(vec![0.5 * w, 0.5 * h], [1, 2]), &device);
+    B::float_mul(pixels.clone(), half)
+}
+
+/// The backward of [`SplatBackend::splat_packed`]: the inner backend's gradients of the
+/// four column blocks, joined into one `[N, 13]` gradient of `packed`.
+#[derive(Debug)]
+struct SplatPackedBackward;
+
+impl<B: Backend + SplatBackend> Backward<B, 2> for SplatPackedBackward {
+    type State = (SplatInputs<B>, SplatState<B>, SplatParams);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let grad_out = grads.consume::<B>(&ops.node);
+        let (inputs, state, params) = ops.state;
+        let g = B::splat_backward(inputs, state, grad_out, params);
+        let [packed, screen] = ops.parents;
+        if let Some(node) = packed {
+            let n = g.opacities.shape()[0];
+            let opacities = B::float_reshape(g.opacities, Shape::from(vec![n, 1]));
+            // The order of `crate::lift::constants`: OUT_MEAN, OUT_COV, OUT_RGB, OUT_OPACITY.
+            let grad = B::float_cat(vec![g.means, g.cov6, g.colors, opacities], 1);
+            grads.register::<B>(node.id, grad);
+        }
+        if let Some(node) = screen {
+            grads.register::<B>(node.id, screen_in_ndc::<B>(&g.screen, &params));
         }
     }
 }
@@ -665,6 +731,27 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             OpsKind::UnTracked(prep) => {
                 prep.finish(B::splat_forward(inner_inputs(inputs), params).out)
             }
+        }
+    }
+
+    fn splat_packed(
+        packed: FloatTensor<Self>,
+        screen: FloatTensor<Self>,
+        params: SplatParams,
+    ) -> FloatTensor<Self> {
+        let nodes = [packed.node(), screen.node()];
+        let inner = unpacked_inputs::<B>(packed.into_primitive(), screen.into_primitive());
+        match SplatPackedBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let state = B::splat_forward(inner.clone(), params);
+                let out = state.out.clone();
+                prep.finish((inner, state, params), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::splat_forward(inner, params).out),
         }
     }
 

@@ -95,6 +95,10 @@ impl Rendered {
 
 fn check(g: &Gaussians, params: &SplatParams) -> Result<()> {
     g.validate()?;
+    check_params(params)
+}
+
+fn check_params(params: &SplatParams) -> Result<()> {
     params.camera.validate("camera")?;
     if params.background.iter().any(|v| !v.is_finite()) {
         return Err(Error::invalid("camera", "background", "must be finite"));
@@ -131,6 +135,29 @@ pub fn render_tapped(g: &Gaussians, screen: Tensor<2>, params: &SplatParams) -> 
     };
     let out = Tensor::<3>::from_dispatch(<Dispatch as SplatBackend>::splat(inputs, *params));
     Ok(Rendered::from_packed(out))
+}
+
+/// [`render`] of Gaussians packed as the lifting operator outputs them (`packed` `[N, 13]`,
+/// [`crate::lift::lift_packed`]): the same image, with the gradient reaching `packed` as
+/// one tensor ([`SplatBackend::splat_packed`]) instead of through four column slices.
+pub fn render_packed(packed: Tensor<2>, params: &SplatParams) -> Result<Rendered> {
+    use crate::lift::constants::OUT_CHANNELS;
+    let [n, k] = packed.dims();
+    if k != OUT_CHANNELS {
+        return Err(Error::invalid(
+            "splat inputs",
+            "packed",
+            format!("expected shape [N, {OUT_CHANNELS}], got [{n}, {k}]"),
+        ));
+    }
+    check_params(params)?;
+    let screen = Tensor::<2>::zeros([n, 2], &packed.device());
+    let out = <Dispatch as SplatBackend>::splat_packed(
+        packed.into_dispatch(),
+        screen.into_dispatch(),
+        *params,
+    );
+    Ok(Rendered::from_packed(Tensor::<3>::from_dispatch(out)))
 }
 
 /// Renders with the dense reference (tensor ops, autodiff by burn). Small scenes only.
