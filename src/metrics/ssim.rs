@@ -29,25 +29,23 @@ pub fn gaussian_window() -> Vec<f32> {
 /// - returns [N, C, H, W]
 pub fn ssim_map(a: Tensor<4>, b: Tensor<4>) -> Tensor<4> {
     let [n, c, h, w] = a.dims();
-    let stack = Tensor::cat(
-        vec![
-            a.clone(),
-            b.clone(),
-            a.clone() * a.clone(),
-            b.clone() * b.clone(),
-            a * b,
-        ],
-        1,
+    // Five blurs rather than one of the five maps stacked: splitting the blurred stack into
+    // tracked channel slices made autodiff build a zero-filled gradient of the whole stack
+    // per slice and add the five (the largest of a `cpu` training step's slice gradients,
+    // docs/performance.md). Each plane is blurred alone either way, so the values are the
+    // same.
+    let (mu1, mu2) = (gaussian_blur(a.clone()), gaussian_blur(b.clone()));
+    let (e11, e22) = (
+        gaussian_blur(a.clone() * a.clone()),
+        gaussian_blur(b.clone() * b.clone()),
     );
-    let m = gaussian_blur(stack);
-    let part = |k: usize| m.clone().narrow(1, k * c, c);
-    let (mu1, mu2) = (part(0), part(1));
+    let e12 = gaussian_blur(a * b);
     let mu11 = mu1.clone() * mu1.clone();
     let mu22 = mu2.clone() * mu2.clone();
     let mu12 = mu1 * mu2;
-    let s11 = part(2) - mu11.clone();
-    let s22 = part(3) - mu22.clone();
-    let s12 = part(4) - mu12.clone();
+    let s11 = e11 - mu11.clone();
+    let s22 = e22 - mu22.clone();
+    let s12 = e12 - mu12.clone();
     let num = (mu12 * 2.0 + SSIM_C1) * (s12 * 2.0 + SSIM_C2);
     let den = (mu11 + mu22 + SSIM_C1) * (s11 + s22 + SSIM_C2);
     let map = num / den;
