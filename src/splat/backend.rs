@@ -12,7 +12,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, NodeGuard, Ops, OpsKind},
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
@@ -712,6 +712,30 @@ fn inner_inputs<B: Backend, C: CheckpointStrategy>(
     }
 }
 
+/// The forward pass of one of the autodiff splat ops (`op`, whose parents are `nodes`): the
+/// renderer's whole state is kept for the backward pass when a parent is tracked, only the
+/// image otherwise.
+fn splat_op<B, C, Op, const N: usize>(
+    op: Op,
+    nodes: [NodeGuard; N],
+    inner: SplatInputs<B>,
+    params: SplatParams,
+) -> FloatTensor<Autodiff<B, C>>
+where
+    B: Backend + SplatBackend,
+    C: CheckpointStrategy,
+    Op: Backward<B, N, State = (SplatInputs<B>, SplatState<B>, SplatParams)>,
+{
+    match op.prepare::<C>(nodes).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => {
+            let state = B::splat_forward(inner.clone(), params);
+            let out = state.out.clone();
+            prep.finish((inner, state, params), out)
+        }
+        OpsKind::UnTracked(prep) => prep.finish(B::splat_forward(inner, params).out),
+    }
+}
+
 impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff<B, C> {
     fn splat(inputs: SplatInputs<Self>, params: SplatParams) -> FloatTensor<Self> {
         let nodes = [
@@ -721,17 +745,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             inputs.opacities.node(),
             inputs.screen.node(),
         ];
-        match SplatBackward.prepare::<C>(nodes).compute_bound().stateful() {
-            OpsKind::Tracked(prep) => {
-                let inner = inner_inputs(inputs);
-                let state = B::splat_forward(inner.clone(), params);
-                let out = state.out.clone();
-                prep.finish((inner, state, params), out)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::splat_forward(inner_inputs(inputs), params).out)
-            }
-        }
+        splat_op::<B, C, _, 5>(SplatBackward, nodes, inner_inputs(inputs), params)
     }
 
     fn splat_packed(
@@ -741,18 +755,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
     ) -> FloatTensor<Self> {
         let nodes = [packed.node(), screen.node()];
         let inner = unpacked_inputs::<B>(packed.into_primitive(), screen.into_primitive());
-        match SplatPackedBackward
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let state = B::splat_forward(inner.clone(), params);
-                let out = state.out.clone();
-                prep.finish((inner, state, params), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::splat_forward(inner, params).out),
-        }
+        splat_op::<B, C, _, 2>(SplatPackedBackward, nodes, inner, params)
     }
 
     fn splat_forward(inputs: SplatInputs<Self>, params: SplatParams) -> SplatState<Self> {
