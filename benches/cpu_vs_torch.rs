@@ -11,8 +11,12 @@
 //!   perceptual loss (burn only: there is no CPU PyTorch implementation of the whole step;
 //!   the reference TexAvatars and GaussianAvatars rasterize with CUDA).
 //!
+//! The step is timed twice: from the untrained model and after it has fitted the batch
+//! ([`FITTED_FROM`]); the renderer's share differs between the two.
+//!
 //! `cargo bench --bench cpu_vs_torch`. `TEXAVATARS_BENCH_RUNS` sets the timed runs per row
-//! (default 10, after 2 warm-up runs); `TEXAVATARS_BENCH_SKIP_PAPER=1` leaves out the
+//! (default 10, after 2 warm-up runs); `TEXAVATARS_BENCH_TRACE=1` also prints every run's
+//! time in order (stderr); `TEXAVATARS_BENCH_SKIP_PAPER=1` leaves out the
 //! `paper` decoders and the 550 x 802 loss. Without `python3 -c "import torch"` the PyTorch
 //! column says so and the burn side still runs. `TEXAVATARS_BENCH_ROWS` (a comma-separated
 //! subset of `decoders`, `perceptual`, `perceptual_before`, `step`, `step_vgg`) runs only
@@ -47,6 +51,9 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 const WARM_UP: usize = 2;
 
+/// One row of the printed table: what, burn's median, PyTorch's median or why there is none.
+type Row = (String, f64, Result<f64, String>);
+
 fn runs() -> usize {
     std::env::var("TEXAVATARS_BENCH_RUNS")
         .ok()
@@ -67,6 +74,10 @@ fn median_ms(mut f: impl FnMut()) -> f64 {
             s.elapsed().as_secs_f64() * 1e3
         })
         .collect();
+    if std::env::var_os("TEXAVATARS_BENCH_TRACE").is_some() {
+        let each: Vec<String> = t.iter().map(|ms| format!("{ms:.1}")).collect();
+        eprintln!("  runs (ms, in order): {}", each.join(" "));
+    }
     t.sort_by(f64::total_cmp);
     t[t.len() / 2]
 }
@@ -194,7 +205,21 @@ fn perceptual_ms(vgg: &VggPerceptual, [h, w]: [usize; 2], burn_ops: bool) -> f64
     })
 }
 
-fn train_step_ms(vgg: Option<Arc<VggPerceptual>>) -> f64 {
+/// Iterations after which [`train_step_ms`] times its second phase.
+///
+/// The renderer's work depends on the Gaussians: the untrained model's are large, so every
+/// tile has many, and as they shrink to fit the image the step gets cheaper. Traced on the
+/// development machine (`TEXAVATARS_BENCH_TRACE=1`, 100 runs), the step without the
+/// perceptual loss fell from about 48 ms over the first 12 iterations to 25-31 ms from
+/// iteration 20 on, the renderer from about 43 to 16 ms of CPU time per step (perf
+/// profiles of both phases). By iteration 100 the model has settled on the batch.
+const FITTED_FROM: usize = 100;
+
+/// Medians of one training step in milliseconds, each with the first timed iteration
+/// (counted from 0): from the untrained model (the first [`runs`] iterations after
+/// [`WARM_UP`]) and from iteration [`FITTED_FROM`] on (later if the first phase ran past
+/// it), when the model has fitted the batch (a single frame, stepped on over and over).
+fn train_step_ms(vgg: Option<Arc<VggPerceptual>>) -> [(usize, f64); 2] {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_cpu.json");
     let config = TrainConfig::load(&path).expect("config");
     let head = HeadAsset::embedded().expect("head");
@@ -237,13 +262,39 @@ fn train_step_ms(vgg: Option<Arc<VggPerceptual>>) -> f64 {
         },
     });
     let mut optim = optimizer(&config);
-    let ms = median_ms(|| {
+    let done = std::cell::Cell::new(0);
+    let mut step = || {
         let m = model.take().expect("model");
         let out = m.step(batch.clone());
         model = Some(optim.step(config.lr_decoders, m, out.grads));
-    });
+        done.set(done.get() + 1);
+    };
+    let untrained = median_ms(&mut step);
+    while done.get() + WARM_UP < FITTED_FROM {
+        step();
+    }
+    let fitted_from = done.get() + WARM_UP;
+    let fitted = median_ms(&mut step);
     let _ = std::fs::remove_dir_all(&data);
-    ms
+    [(WARM_UP, untrained), (fitted_from, fitted)]
+}
+
+/// The two rows of one [`train_step_ms`] measurement.
+fn step_rows(rows: &mut Vec<Row>, vgg: &str, [(a, untrained), (b, fitted)]: [(usize, f64); 2]) {
+    let n = runs();
+    for (when, ms) in [
+        (
+            format!("iterations {a}-{}, untrained", a + n - 1),
+            untrained,
+        ),
+        (format!("iterations {b}-{}, fitted", b + n - 1), fitted),
+    ] {
+        rows.push((
+            format!("training step `cpu`, 138x200, {vgg} ({when})"),
+            ms,
+            Err("no CPU PyTorch implementation of the whole step".to_string()),
+        ));
+    }
 }
 
 /// Whether the row group `name` is asked for (`TEXAVATARS_BENCH_ROWS`; all when unset).
@@ -267,7 +318,7 @@ fn run() {
          warm-up runs",
         runs()
     );
-    let mut rows: Vec<(String, f64, Result<f64, String>)> = Vec::new();
+    let mut rows: Vec<Row> = Vec::new();
     let mut configs = vec!["cpu"];
     if !wanted("decoders") {
         configs.clear();
@@ -307,20 +358,11 @@ fn run() {
     }
     if wanted("step") {
         eprintln!("training steps ...");
-        let none = || Err("no CPU PyTorch implementation of the whole step".to_string());
-        rows.push((
-            "training step `cpu`, 138x200, no VGG".into(),
-            train_step_ms(None),
-            none(),
-        ));
+        step_rows(&mut rows, "no VGG", train_step_ms(None));
     }
     if wanted("step_vgg") {
         eprintln!("training step with the perceptual loss ...");
-        rows.push((
-            "training step `cpu`, 138x200, with VGG".into(),
-            train_step_ms(Some(vgg.clone())),
-            Err("no CPU PyTorch implementation of the whole step".to_string()),
-        ));
+        step_rows(&mut rows, "with VGG", train_step_ms(Some(vgg.clone())));
     }
     println!();
     println!("| what | burn-flex | PyTorch | ratio |");
