@@ -210,7 +210,7 @@ fn perceptual_ms(vgg: &VggPerceptual, [h, w]: [usize; 2], burn_ops: bool) -> f64
 /// The renderer's work depends on the Gaussians: the untrained model's are large, so every
 /// tile has many, and as they shrink to fit the image the step gets cheaper. Traced on the
 /// development machine (`TEXAVATARS_BENCH_TRACE=1`, 100 runs), the step without the
-/// perceptual loss fell from about 48 ms over the first 12 iterations to 25-31 ms from
+/// perceptual loss fell from about 48 ms over the first 12 iterations to 24-32 ms from
 /// iteration 20 on, the renderer from about 43 to 16 ms of CPU time per step (perf
 /// profiles of both phases). By iteration 100 the model has settled on the batch.
 const FITTED_FROM: usize = 100;
