@@ -1,7 +1,7 @@
 //! Integration tests of the GPU splat kernels (`texavatars::splat::gpu`) on wgpu (lavapipe
 //! when the machine has no GPU).
 //!
-//! - Fixture scenes (`../shared/fixtures/splat` next to the crate; skipped when absent):
+//! - Fixture scenes (`tests/fixtures/splat`, committed; a missing one fails the test):
 //!   image, transmittance and the four gradients against the float64 PyTorch dense
 //!   reference, for both gradient accumulation paths (float atomics, and per-intersection
 //!   slots as used without float atomics).
@@ -487,8 +487,9 @@ fn stats(got: &[f32], want: &[f64]) -> Stats {
 // Fixtures
 // ---------------------------------------------------------------------------------------
 
+/// `tests/fixtures/splat` (see `tests/fixtures/README.md`).
 fn fixture_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/splat")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/splat")
 }
 
 fn npy(path: &Path) -> Vec<f32> {
@@ -501,10 +502,12 @@ fn npy(path: &Path) -> Vec<f32> {
 
 fn run_fixture(name: &str) {
     let dir = fixture_root().join(name);
-    if !dir.join("camera.json").exists() {
-        println!("fixture {name} not found at {}: skipped", dir.display());
-        return;
-    }
+    // Committed with the tests: a missing scene is a broken checkout, not a reason to skip.
+    assert!(
+        dir.join("camera.json").is_file(),
+        "fixture missing: {} (committed under tests/fixtures; see tests/fixtures/README.md)",
+        dir.join("camera.json").display()
+    );
     let file = CameraFile::load(&dir.join("camera.json")).unwrap();
     let scene = Scene {
         means: npy(&dir.join("means.npy")),

@@ -1,7 +1,7 @@
 //! Image metrics and losses: self-made cases that always run (identical images, known MSE,
 //! SSIM against an independent f64 implementation and its gradient against finite
-//! differences, LPIPS / perceptual loss on synthetic weights), the shared fixtures
-//! (`../shared/fixtures/metrics`, when present; LPIPS parts only when the weights are
+//! differences, LPIPS / perceptual loss on synthetic weights), the committed fixtures
+//! (`tests/fixtures/metrics`, a missing one fails; LPIPS parts only when the weights are
 //! installed) and the `metrics` command.
 #![allow(deprecated)] // burn-ndarray, the project's CPU backend, is deprecated in burn 0.22.
 
@@ -15,7 +15,7 @@ use texavatars::metrics::weights::{self, HostWeights};
 use texavatars::metrics::{self, Lpips, Net, VggPerceptual, image_tensor, to_host};
 use texavatars::splat::demo::Pcg;
 
-/// burn-flex: the networks run ~12x faster on it than on burn-ndarray (whose conv2d is slow
+/// burn-flex: the networks run much faster on it than on burn-ndarray (whose conv2d is slow
 /// here); [`psnr_and_ssim_match_fixtures`] covers ndarray too.
 fn cpu() -> Device {
     Device::flex()
@@ -368,7 +368,7 @@ fn metrics_command_prints_json() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// The shared fixtures.
+// The committed fixtures (`tests/fixtures/metrics`, see `tests/fixtures/README.md`).
 
 const DISTORTIONS: [&str; 6] = [
     "identical",
@@ -379,23 +379,32 @@ const DISTORTIONS: [&str; 6] = [
     "shifted",
 ];
 
-fn fixtures() -> Option<(PathBuf, serde_json::Value)> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/metrics");
-    let Ok(text) = std::fs::read_to_string(dir.join("expected.json")) else {
-        println!("skipped: no fixtures at {}", dir.display());
-        return None;
-    };
+/// The fixture folder and its `expected.json`; panics naming the path when either is missing
+/// (the fixtures are part of the repository: a missing one is a broken checkout).
+fn fixtures() -> (PathBuf, serde_json::Value) {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/metrics");
+    let path = dir.join("expected.json");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| {
+        panic!(
+            "fixture missing: {} ({e}; committed under tests/fixtures, see \
+             tests/fixtures/README.md)",
+            path.display()
+        )
+    });
     let v = serde_json::from_str(&text).expect("expected.json parses");
-    Some((dir, v))
+    (dir, v)
 }
 
 /// Reference and distortions as one batch each: [6, 3, H, W] (reference repeated).
 fn fixture_batch(dir: &Path, d: &Device) -> (Tensor<4>, Tensor<4>) {
-    let reference = read_rgb(&dir.join("reference.png")).expect("reference.png");
-    let r = image_tensor(&reference, d);
+    let read = |name: &str| {
+        let path = dir.join(format!("{name}.png"));
+        read_rgb(&path).unwrap_or_else(|e| panic!("fixture {}: {e}", path.display()))
+    };
+    let r = image_tensor(&read("reference"), d);
     let imgs: Vec<Tensor<4>> = DISTORTIONS
         .iter()
-        .map(|n| image_tensor(&read_rgb(&dir.join(format!("{n}.png"))).expect("png"), d))
+        .map(|n| image_tensor(&read(n), d))
         .collect();
     (Tensor::cat(imgs, 0), r.repeat_dim(0, DISTORTIONS.len()))
 }
@@ -426,9 +435,7 @@ fn compare(expected: &serde_json::Value, key: &str, got: &[f64], tol: f64) -> f6
 
 #[test]
 fn psnr_and_ssim_match_fixtures() {
-    let Some((dir, expected)) = fixtures() else {
-        return;
-    };
+    let (dir, expected) = fixtures();
     for d in [Device::flex(), Device::ndarray()] {
         println!("{d:?}");
         let (i, r) = fixture_batch(&dir, &d);
@@ -444,9 +451,7 @@ fn psnr_and_ssim_match_fixtures() {
 
 #[test]
 fn lpips_matches_fixtures() {
-    let Some((dir, expected)) = fixtures() else {
-        return;
-    };
+    let (dir, expected) = fixtures();
     let wdir = weights::weights_dir().expect("weights folder");
     if !Net::ALL
         .iter()

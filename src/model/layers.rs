@@ -721,6 +721,11 @@ mod tests {
         let d = device();
         d.seed(5); // not the writer's seed: the layers start from other values
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/wn_layers");
+        assert!(
+            dir.is_dir(),
+            "fixture missing: {} (see tests/fixtures/README.md)",
+            dir.display()
+        );
         let mut npz = Npz::open(&dir.join("outputs.npz")).expect("outputs.npz");
         let mut array = |name: &str| npz.floats(name).expect(name);
         let tensor = |a: crate::io::npy::Array| TensorData::new(a.data, a.shape);

@@ -36,10 +36,24 @@ pub struct Expected {
     pub grad_opacities: Vec<f32>,
 }
 
-/// The fixture folder `../shared/fixtures/splat`, when present.
-pub fn fixtures_dir() -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/fixtures/splat");
-    d.is_dir().then_some(d)
+/// The committed fixture folder `tests/fixtures/<rel>` (see `tests/fixtures/README.md`).
+/// Panics naming the path when it is missing: the fixtures are part of the repository, so a
+/// missing one is a broken checkout, never a reason to skip.
+pub fn fixture_path(rel: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(rel);
+    assert!(
+        d.exists(),
+        "fixture missing: {} (committed under tests/fixtures; see tests/fixtures/README.md)",
+        d.display()
+    );
+    d
+}
+
+/// The splat fixture folder `tests/fixtures/splat` (scenes `small`, `medium`, `edge`).
+pub fn fixtures_dir() -> PathBuf {
+    fixture_path("splat")
 }
 
 fn load(dir: &Path, name: &str) -> Vec<f32> {
@@ -48,11 +62,12 @@ fn load(dir: &Path, name: &str) -> Vec<f32> {
         .data
 }
 
-/// Loads fixture scene `name` (small, medium, edge).
-pub fn fixture(name: &str) -> Option<Scene> {
-    let dir = fixtures_dir()?.join(name);
+/// Loads fixture scene `name` (small, medium, edge) from `tests/fixtures/splat/<name>`;
+/// panics naming the path of a missing folder or file.
+pub fn fixture(name: &str) -> Scene {
+    let dir = fixture_path(&format!("splat/{name}"));
     let cam = CameraFile::load(&dir.join("camera.json")).unwrap_or_else(|e| panic!("{e}"));
-    Some(Scene {
+    Scene {
         name: name.to_string(),
         means: load(&dir, "means"),
         cov6: load(&dir, "cov6"),
@@ -71,7 +86,7 @@ pub fn fixture(name: &str) -> Option<Scene> {
             grad_colors: load(&dir, "grad_colors"),
             grad_opacities: load(&dir, "grad_opacities"),
         }),
-    })
+    }
 }
 
 /// A camera looking down +z from the origin (OpenCV axes).
