@@ -208,11 +208,10 @@ fn perceptual_ms(vgg: &VggPerceptual, [h, w]: [usize; 2], burn_ops: bool) -> f64
 /// Iterations after which [`train_step_ms`] times its second phase.
 ///
 /// The renderer's work depends on the Gaussians: the untrained model's are large, so every
-/// tile has many, and as they shrink to fit the image the step gets cheaper. Traced on the
-/// development machine (`TEXAVATARS_BENCH_TRACE=1`, 100 runs), the step without the
-/// perceptual loss fell from about 48 ms over the first 12 iterations to 24-32 ms from
-/// iteration 20 on, the renderer from about 43 to 16 ms of CPU time per step (perf
-/// profiles of both phases). By iteration 100 the model has settled on the batch.
+/// tile has many, and as they shrink to fit the image the step gets cheaper. A trace of 100
+/// runs (`TEXAVATARS_BENCH_TRACE=1`) shows the step without the perceptual loss falling over
+/// the first dozen iterations and levelling off from about iteration 20, most of the drop in
+/// the renderer; by iteration 100 the model has settled on the batch.
 const FITTED_FROM: usize = 100;
 
 /// Medians of one training step in milliseconds, each with the first timed iteration

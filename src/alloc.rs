@@ -4,12 +4,11 @@
 //! mimalloc returns freed pages to the OS ("purges" them: `MADV_DONTNEED` on Linux) once they
 //! have stayed free for `purge_delay` milliseconds. A CPU training step frees and allocates
 //! the same few hundred MB of activations and gradients every iteration, so purged pages come
-//! back as page faults that the kernel must zero (`clear_page_erms`, 13% of a `cpu` step in
-//! a flat `perf` profile on 2026-12-04). With purging off, freed pages stay mapped and are
-//! reused: the `cpu` step went from 67-72 ms to 61-67 ms (three interleaved pairs of
-//! `TEXAVATARS_BENCH_ROWS=step cargo bench --bench cpu_vs_torch`, docs/performance.md).
-//! The cost is that the process keeps its peak resident size until it exits, which a training
-//! run reaches anyway.
+//! back as page faults that the kernel must zero (`clear_page_erms` in a profile), a
+//! noticeable share of a small `cpu` step. With purging off, freed pages stay mapped and are
+//! reused, and the step is faster (`TEXAVATARS_BENCH_ROWS=step cargo bench --bench
+//! cpu_vs_torch` compares, docs/performance.md). The cost is that the process keeps its peak
+//! resident size until it exits, which a training run reaches anyway.
 
 use libmimalloc_sys::{mi_option_get, mi_option_set, mi_option_t};
 

@@ -179,16 +179,14 @@ fn uninit_product(
 }
 
 /// Summed `k` from which [`GradientSum`] keeps its sum column-major (with at least
-/// [`COLUMN_MAJOR_MIN_N`] columns). Measured on the `paper` decoders' transposed
-/// convolutions (2026-12-05, docs/performance.md), weight gradient per step, row-major ->
-/// column-major: k = 4096 (128 -> 64 at 64^2) 9.2-11.1 -> 5.9-7.1 ms, k = 16384 (64 -> 32)
-/// 17.0-19.3 -> 6.7-7.4 ms, k = 65536 (32 -> 11) 14.2-16.0 -> 8.1-8.4 ms; at k = 1024 and
-/// below no gain that pays for the transposition (128 -> 128 at 32^2: 3.1-3.3 -> 2.7-2.9 ms
-/// plus 1.1 ms).
+/// [`COLUMN_MAJOR_MIN_N`] columns). Chosen on the weight gradients of the `paper` decoders'
+/// transposed convolutions: from k = 4096 (128 -> 64 at 64^2) up to k = 65536 (32 -> 11) the
+/// column-major sum is much faster; at k = 1024 and below (128 -> 128 at 32^2) its gain
+/// does not pay for the final transposition.
 pub const COLUMN_MAJOR_MIN_K: usize = 4096;
 
 /// Columns (`n`) from which [`GradientSum`] keeps its sum column-major: with 48 (64 -> 3,
-/// k = 16384) the column-major product was slower (1.4-1.9 -> 1.9-2.4 ms).
+/// k = 16384) the column-major product is slower than the row-major one.
 pub const COLUMN_MAJOR_MIN_N: usize = 64;
 
 /// A sum of products `lhs · rhsᵀ` whose two operands both run along `k` (`lhs` [m×k],
@@ -197,9 +195,9 @@ pub const COLUMN_MAJOR_MIN_N: usize = 64;
 ///
 /// With a long `k` it is kept column-major while it sums and transposed once at the end:
 /// gemm computes a row-major destination as the transposed problem, which packs `rhs` (the
-/// larger operand there) in panels of 64 rows a power-of-two stride apart; into a
-/// column-major destination the same product took a third to a half of the time (see
-/// [`COLUMN_MAJOR_MIN_K`]).
+/// larger operand there) in panels of 64 rows a power-of-two stride apart (cache
+/// conflicts); into a column-major destination the same product avoids that packing and is
+/// much faster (see [`COLUMN_MAJOR_MIN_K`]).
 pub struct GradientSum {
     m: usize,
     n: usize,

@@ -5,13 +5,12 @@
 //! cold path (`Registry::in_worker_cold` in rayon-core): it injects the job into the pool,
 //! wakes the workers, and puts the caller to sleep on a latch until the job is done, so each
 //! loop costs a futex wake-up of the workers and a sleep and wake-up of the caller. A `cpu`
-//! decoder step runs a few hundred such loops; in a `perf` profile of
-//! `cargo bench --bench cpu_vs_torch` (decoders, `cpu`) on 2026-12-05, the wake-ups
-//! (`try_to_wake_up` under `Sleep::wake_specific_thread`, `finish_task_switch`) took about a
-//! fifth of the time. Called from one of the pool's own threads, a loop pushes its halves
-//! onto that thread's queue and starts on them at once; only an idle worker needs waking, and
-//! the caller never sleeps. Measured the same day, interleaved: the `cpu` decoders'
-//! forward + backward went from 19.5 and 15.0 ms to 13.1 and 13.7 ms (docs/performance.md).
+//! decoder step runs a few hundred such loops, and in a profile of `cargo bench --bench
+//! cpu_vs_torch` (decoders, `cpu`) the wake-ups (`try_to_wake_up` under
+//! `Sleep::wake_specific_thread`, `finish_task_switch`) are a large share of the time. Called
+//! from one of the pool's own threads, a loop pushes its halves onto that thread's queue and
+//! starts on them at once; only an idle worker needs waking, and the caller never sleeps, so
+//! the small decoders' forward and backward run faster (docs/performance.md).
 //!
 //! [`on_pool`] therefore runs a whole command on a pool thread (`cli::run`, every command but
 //! `view`, whose calling thread waits on its server for the whole session and would hold a

@@ -16,9 +16,9 @@
 //! consistent (array lengths match shapes, and so on).
 //!
 //! Case budget: [`CASES`] = 1024 per property, 25 properties (JSON: each case picks one of
-//! the five loaders), 25,600 cases in all; the whole file runs in about 2 s in the debug
-//! test profile on 2 cores (40,000 per property, about 70 s, found nothing more). Raise
-//! `CASES` locally for a longer fuzzing session.
+//! the five loaders), 25,600 cases in all, few enough for every debug test run (a longer
+//! session with 40,000 per property found nothing more). Raise `CASES` locally for a longer
+//! fuzzing session.
 //!
 //! Regression tests for the crashes found are at the end of the file (`regression_*`).
 

@@ -21,7 +21,7 @@ pub struct MetricsArgs {
     #[arg(long)]
     pub no_lpips: bool,
     /// Where the networks run. Defaults to flex: on the CPU, burn-ndarray's convolutions
-    /// make LPIPS-VGG about 12x slower than burn-flex's.
+    /// make LPIPS-VGG many times slower than burn-flex's.
     #[arg(long, value_enum, default_value_t = BackendKind::Flex)]
     pub backend: BackendKind,
 }

@@ -3,9 +3,9 @@
 //! along the columns, zero padding, same size.
 //!
 //! Why: composed from burn's `conv2d` (a 1x11 and an 11x1 convolution with one channel),
-//! the backward runs burn's transposed convolution, a direct loop on the CPU backends: in
-//! `perf`, that loop was 10% of a `cpu`-configuration training step, and 3% after this op
-//! (the rest is the view encoder's). Here both directions are two 11-tap passes per plane.
+//! the backward runs burn's transposed convolution, a direct loop on the CPU backends that
+//! was a large share of a `cpu`-configuration training step. Here both directions are two
+//! 11-tap passes per plane.
 
 //! The backward is the forward applied to the gradient: a correlation with zero padding is
 //! adjoint to the correlation with the mirrored kernel, and the Gaussian window is

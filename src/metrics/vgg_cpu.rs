@@ -3,9 +3,9 @@
 //! to the images. The weights are frozen, so no weight gradient is ever formed.
 //!
 //! Why: through burn's generic ops (flex), one loss evaluation at 138 x 200 (reference pass,
-//! render pass, backward) took about twice PyTorch's time, most of it in the convolutions'
-//! input gradients and the element-wise autodiff steps between them (ReLU masks, pooling,
-//! the normalisation). Here everything is in one place on host memory:
+//! render pass, backward) was much slower than PyTorch's, most of the time going to the
+//! convolutions' input gradients and the element-wise autodiff steps between them (ReLU
+//! masks, pooling, the normalisation). Here everything is in one place on host memory:
 //!
 //! - maps are channels-last (`[H·W, C]`), so every gather copies runs of `C` floats;
 //! - a convolution with at least [`WINOGRAD_MIN_CHANNELS`] channels on both sides (all but
@@ -16,18 +16,17 @@
 //!   U_ξ[C_in, C_out]`. F(4x4, 3x3) (36 products per 16 pixels, 4x fewer multiply-adds than
 //!   the direct convolution) runs the layers of up to 256 channels; the 512-channel layers
 //!   keep F(2x2, 3x3) (16 per 4, 2.25x fewer), whose weights are 2.25x smaller and whose
-//!   maps at 138 x 200 (25 x 17, 12 x 8) give F(4x4) too few tiles per product: measured
-//!   per layer at 138 x 200 (forward and input gradient), F(4x4) took 17-42% less time
-//!   on the 64- to 256-channel layers, between 6% less and 2% more on the 25 x 17 maps
-//!   and 12-19% more on the 12 x 8 ones. The bias and the ReLU are applied in the output
-//!   transform while the tile is in cache;
+//!   maps at 138 x 200 (25 x 17, 12 x 8) give F(4x4) too few tiles per product: timed per
+//!   layer at 138 x 200 (forward and input gradient), F(4x4) is clearly faster on the 64-
+//!   to 256-channel layers, about even on the 25 x 17 maps and slower on the 12 x 8 ones.
+//!   The bias and the ReLU are applied in the output transform while the tile is in cache;
 //! - the first convolution (3 input channels) keeps the column formulation: one product
 //!   per block of pixels, `Y[block, C_out] = col[block, 9·C_in] · W[9·C_in, C_out]`;
 //! - the input gradient of a 3x3 convolution (padding 1) is itself a 3x3 convolution of the
 //!   masked output gradient with the kernel rotated by 180° and its channel axes swapped,
 //!   so the backward runs the same routine with those weights (`u_back`, transformed once;
 //!   stored contiguous, because read in place from the forward's with transposed strides
-//!   every product packed them element by element, 7% of the loss's time at 138 x 200);
+//!   every product would pack them element by element);
 //! - the first convolution's input gradient (3 output channels) is the product of the
 //!   output gradient with the transposed weights, then a sum over the nine taps
 //!   (`conv3x3_input_gradient`);
@@ -64,27 +63,23 @@ use crate::metrics::nets::Net;
 use crate::metrics::weights::HostWeights;
 
 /// Floats of the larger of one block's column matrix and its output (256 KiB): both stay in
-/// the core's L2 cache from the gather through the product to the bias and ReLU. Measured on
-/// VGG16's first layer at 138 x 200 (forward of two images, medians of 12 evaluations, in
-/// two rounds on the development machine): 4.9 and 4.6 ms at 1 MiB of column matrix (two
-/// blocks of 3.5 MiB of output), 3.5-4.0 ms at 256 KiB, 3.4-4.6 ms at 128 KiB, 3.8-4.7 ms at
-/// 64 KiB.
+/// the core's L2 cache from the gather through the product to the bias and ReLU. Chosen by
+/// timing VGG16's first layer at 138 x 200 with blocks from 64 KiB to 1 MiB: 1 MiB (whose
+/// output no longer fits the cache) was clearly slower, 128-256 KiB the fastest.
 const COL_BLOCK: usize = 1 << 16;
 
 /// Floats of one thread's Winograd block of transformed input and output tiles (1 MiB):
-/// its α² products read and write them, so they should stay in the core's cache. Measured
-/// on VGG16's 64-channel layer at 138 x 200 with F(4x4, 3x3) on the development machine
-/// (2 MiB of L2 per core), forward and input gradient: 2.9 ms each at 1 MiB, 3.2-3.4 at
-/// 512 KiB, 3.5-3.7 at 2 MiB.
+/// its α² products read and write them, so they should stay in the core's cache. Chosen by
+/// timing VGG16's 64-channel layer at 138 x 200 with F(4x4, 3x3) on a machine with 2 MiB of
+/// L2 per core (forward and input gradient): 1 MiB was faster than 512 KiB and 2 MiB.
 const WINOGRAD_BLOCK: usize = 1 << 18;
 
 /// Floats of transformed tiles up to which a map is one Winograd block shared by all
 /// threads (16 MiB: VGG16's maps from conv2 on at 138 x 200; none at 550 x 802).
-/// Measured per layer at 138 x 200 on the development machine (forward and input
-/// gradient), with F(2x2, 3x3): on the maps from conv3 on the shared block was 2-60%
-/// faster than per-thread blocks, on the larger maps 13-45% slower; with F(4x4, 3x3),
-/// whose conv2 maps also fit, a limit of 8 MiB (conv2 and conv3 in per-thread blocks) was
-/// 2-27% slower on those layers.
+/// Chosen by timing each layer at 138 x 200 (forward and input gradient): with F(2x2, 3x3)
+/// the shared block was faster than per-thread blocks on the maps from conv3 on and slower
+/// on the larger maps; with F(4x4, 3x3), whose conv2 maps also fit, a limit of 8 MiB (conv2
+/// and conv3 in per-thread blocks) was slower on those layers.
 const WINOGRAD_SHARED: usize = 1 << 22;
 
 /// Channels (input and output) from which a convolution runs as Winograd: with 3 input
@@ -490,9 +485,8 @@ const L1_LANES: usize = 8;
 
 /// `Σ |x - y|` in `f64`, and with `g = Some((g, inv))` the tap's gradient `g = sign(x - y) ·
 /// inv`, every value of which it writes. The sum runs in [`L1_LANES`] partial sums, so that
-/// its adds do not wait for one another: as one chain of dependent adds it was 2.6% of the
-/// loss's samples in a `perf` profile at 138 x 200 (0.051 of gemm's micro-kernel's), in
-/// eight 1.3% (0.025); what is left is mostly reading the taps.
+/// its adds do not wait for one another (one chain of dependent adds is bound by the add's
+/// latency); with eight, what is left is mostly reading the taps.
 fn l1_distance(x: &[f32], y: &[f32], mut g: Option<(&mut [MaybeUninit<f32>], f32)>) -> f64 {
     debug_assert_eq!(x.len(), y.len());
     if let Some((g, _)) = &g {
@@ -1346,8 +1340,8 @@ fn max_pool(x: &Map, c: usize) -> Map {
 
 with_avx2! {
     /// One output row of [`max_pool`] from the two input rows under it, in AVX2's lanes where
-    /// the CPU has them (the scan's comparisons are data-dependent: as branches they were
-    /// mispredicted about half the time, 3 ms for VGG16's first pool at 138 x 200).
+    /// the CPU has them (the scan's comparisons are data-dependent: as branches they are
+    /// mispredicted about half the time).
     fn pool_row = pool_row_generic(out: &mut [f32], x: [&[f32]; 2], c: usize)
 }
 

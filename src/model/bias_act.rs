@@ -174,8 +174,8 @@ pub(super) fn dims(y: &[usize], bias: &[usize]) -> EpilogueDims {
 /// `[C, H, W]` flattened.
 pub(super) fn epilogue_plane(plane: &mut [f32], bias: &[f32], ch: usize, untied: bool, act: bool) {
     // Branch-free so that the loops vectorise: with `0 < slope < 1`, LeakyReLU is
-    // `max(z, slope·z)`. A branch on the sign mispredicted on about half the values and
-    // made this pass about 4 ns per value (`perf annotate`, 2026-12-04).
+    // `max(z, slope·z)`. A branch on the sign mispredicts on about half the values (the
+    // signs are close to random), which made this pass several times slower.
     let s = if act { LEAKY_RELU_SLOPE as f32 } else { 1.0 };
     let apply = |v: &mut f32, b: f32| {
         let z = *v + b;

@@ -3,8 +3,8 @@
 //! decoder's middle.
 //!
 //! Why: burn-flex 0.22 evaluates a convolution's input gradient as a transposed convolution
-//! through a direct per-pixel loop (`conv_transpose3d_impl`, about 6% of the `cpu` decoders'
-//! time in a profile) and its weight gradient through burn's generic formula. Here all three
+//! through a direct per-pixel loop (`conv_transpose3d_impl`, a visible share of the `cpu`
+//! decoders' time) and its weight gradient through burn's generic formula. Here all three
 //! products are the column formulation on this crate's `gemm` (the one burn-flex uses):
 //!
 //! - forward, per batch item: `col = im2col(X)` ([C_in·k_h·k_w, H_out·W_out]), then

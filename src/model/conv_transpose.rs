@@ -316,9 +316,9 @@ pub(super) fn col2im_plane(col: &[f32], o: &mut [f32], c: usize, d: Dims, p: &Co
 /// A tap `kx` sends input columns to the output columns `ix·s_x + kx - p_x`, which step by
 /// `s_x`; so the row is summed in `s_x` phase rows (phase `r` holds the output columns
 /// `m·s_x + r`), where every tap's contribution is one contiguous, vectorisable add, and
-/// the phases are interleaved into `o`'s row once at the end. The earlier form added each
-/// tap into `o` with a stride of `s_x`, one scalar at a time (9% of the `paper` decoders'
-/// forward + backward in a `perf` profile on 2026-12-05).
+/// the phases are interleaved into `o`'s row once at the end. Adding each tap into `o` with a
+/// stride of `s_x` instead is scalar code, one value at a time, and was a large part of the
+/// `paper` decoders' forward + backward.
 fn col2im_rows(
     col: &[f32],
     o: &mut [f32],
@@ -456,8 +456,7 @@ fn im2col_rows(g: &[f32], dcol: &mut [f32], d: Dims, p: &ConvTParams, (r0, r1): 
                     dst[ix0..ix1].copy_from_slice(&src[..n]);
                 } else if sx == 2 {
                     // The decoders' stride, written out as pairs so that the compiler
-                    // vectorises it (a `step_by(2)` gather was scalar, 6.6% of the `paper`
-                    // decoders in a `perf` profile on 2026-12-05).
+                    // vectorises it (a `step_by(2)` gather compiles to scalar code).
                     let (body, last) = dst[ix0..ix1].split_at_mut(n - 1);
                     body.iter_mut()
                         .zip(src[..2 * (n - 1)].chunks_exact(2))
@@ -576,16 +575,15 @@ pub trait HostConvT: HostIo {
 }
 
 /// burn-ndarray's own `conv_transpose2d` is two orders of magnitude slower than the column
-/// formulation here (942 ms against 4 ms for one `cpu` decoder layer): both passes are ours.
+/// formulation here: both passes are ours.
 impl HostConvT for NdArray {
     const HOST_FORWARD: bool = true;
 }
 
-/// burn-flex's tiled forward was faster than ours (96 ms against 114 ms for the `paper`
-/// decoders) until `col2im` lost its bounds-checked per-pixel loop; since then ours was
-/// faster in three interleaved `cpu_vs_torch` rounds (the `paper` decoders' forward +
-/// backward 234, 233, 227 ms against 283, 306, 232 ms; docs/performance.md), and the
-/// decoders' fused layer ([`super::conv_t_bias_act`]) is built on it.
+/// burn-flex has a tiled forward of its own; ours, whose `col2im` has no bounds-checked
+/// per-pixel loop, is at least as fast on the decoders (`cargo bench --bench cpu_vs_torch`,
+/// docs/performance.md), and the decoders' fused layer ([`super::conv_t_bias_act`]) is built
+/// on it.
 impl HostConvT for Flex {
     const HOST_FORWARD: bool = true;
 }

@@ -518,7 +518,7 @@ impl TexAvatarNet {
     }
 
     /// For inference: every layer's weight norm folded into its weight, so forward passes
-    /// skip the norms (about 13 % of the `paper` decoders' forward on the CPU). The folded net
+    /// skip the norms (a sizeable part of the `paper` decoders' forward on the CPU). The folded net
     /// computes the same function and saves as an ordinary one; it is not for training.
     pub fn fold(self) -> Self {
         Self {

@@ -154,9 +154,9 @@ fn build_view_input(camera: &Camera, square_res: usize, res: usize) -> PlueckerM
 }
 
 /// Maps kept by [`view_input`]: a training run asks for the same few cameras every step,
-/// and building one map (every pixel's ray at image size, then 2-3 resamplings) took 4-5% of
-/// a `cpu`-config training step's samples in a `perf` profile (2026-12-02). 32 maps of
-/// 6 x 128^2 floats are 12 MB.
+/// and building one map (every pixel's ray at image size, then 2-3 resamplings) is a
+/// noticeable share of a small (`cpu`-config) training step, so it is done once per camera.
+/// 32 maps of 6 x 128^2 floats are 12 MB.
 const CACHED_MAPS: usize = 32;
 
 /// A camera's bits and the two sides: equal keys give bit-identical maps.

@@ -8,10 +8,10 @@
 //! Exp2Code's linear layer alone is `64·C_code x C_cond`
 //! (16,384 x 243 = 4.0 M values in the `paper` configuration). Here the forward is two
 //! passes (the norm, then `w`) and the backward three (the norm again, the per-channel
-//! dot products, then `dv`). Measured in one session, interleaved (`cargo bench --bench
-//! cpu_vs_torch`, docs/performance.md): the decoders' forward + backward took 10-25% less
-//! time with it. The convolutions use it; the linear layer now folds the norm into its
-//! product instead ([`mod@super::wn_linear`]), never forming `w`.
+//! dot products, then `dv`), which makes the decoders' forward + backward faster (`cargo
+//! bench --bench cpu_vs_torch`, docs/performance.md). The convolutions use it; the linear
+//! layer now folds the norm into its product instead ([`mod@super::wn_linear`]), never
+//! forming `w`.
 //!
 //! With `n = ||v||` and `s_o = g_o / n`, for the gradient `dw` of `w`:
 //! - `a_o = Σ_{i in channel o} dw_i · v_i`;

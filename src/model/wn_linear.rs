@@ -6,9 +6,8 @@
 //! 16,384 x 243 = 4.0 M values in the `paper` configuration) and sees one condition vector per
 //! frame, so its cost is passes over memory, not arithmetic. Composed ([`mod@super::weight_norm`]
 //! then burn's `linear`), the forward wrote `w` and read it again, and the backward formed
-//! `dw = dyᵀ · x`, a transposed copy, `dx = dy · w`, then the weight norm's three passes: 12.5
-//! ms forward and 31 ms backward for that one layer on 2026-12-05 (flex, 2 threads), about a
-//! quarter of the `paper` decoders' step. Here `w` is never formed:
+//! `dw = dyᵀ · x`, a transposed copy, `dx = dy · w`, then the weight norm's three passes, so
+//! this one layer was a large share of the `paper` decoders' step. Here `w` is never formed:
 //!
 //! - forward, one pass over `v`: per output row `o`, `||v_o||²` and `u_bo = v_o · x_b`; then
 //!   `n = ||v||` and `y_bo = s_o · u_bo` with `s_o = g_o / n`;

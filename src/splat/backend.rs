@@ -103,8 +103,8 @@ pub trait SplatBackend: Backend {
     /// order of `crate::lift::constants` (`OUT_MEAN`, `OUT_COV`, `OUT_RGB`, `OUT_OPACITY`).
     /// Under autodiff the gradient reaches `packed` as one `[N, 13]` tensor: splitting it
     /// into four tracked column slices first would make autodiff build a zero-filled
-    /// `[N, 13]` gradient per slice and add the four (4.6% of a `cpu` training step's
-    /// profile went to such slice gradients, docs/performance.md).
+    /// `[N, 13]` gradient per slice and add the four, a visible share of a `cpu` training
+    /// step (docs/performance.md).
     fn splat_packed(
         packed: FloatTensor<Self>,
         screen: FloatTensor<Self>,
@@ -222,8 +222,8 @@ impl HostIo for Flex {
     }
 
     /// A tensor no one else holds is rewritten where it lies: `into_data` and the
-    /// `TensorData` round trip would copy it (Adam's parameters and moments were 2.6% of a
-    /// `cpu` training step's profile in those copies, docs/performance.md). In training the
+    /// `TensorData` round trip would copy it (for Adam's parameters and moments every step,
+    /// docs/performance.md). In training the
     /// moments are unique; the parameters are not (something else holds them) and still go
     /// through the copy.
     fn in_place(mut t: FloatTensor<Self>, f: impl FnOnce(&mut [f32])) -> FloatTensor<Self> {
@@ -247,7 +247,8 @@ fn in_place_copy<H: HostIo>(t: FloatTensor<H>, f: impl FnOnce(&mut [f32])) -> Fl
 }
 
 /// ndarray's `into_data` copies element by element through a dynamic-rank iterator when the
-/// array is shared (as autodiff inputs are): ~25 ns per value, which dominated the CPU path.
+/// array is shared (as autodiff inputs are), tens of nanoseconds per value, which dominated
+/// the CPU path.
 /// Reading through a view of the contiguous storage is a plain copy.
 impl HostIo for NdArray {
     fn floats(t: FloatTensor<Self>) -> Vec<f32> {

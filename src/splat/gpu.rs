@@ -15,7 +15,7 @@
 //! per-Gaussian sum when the device has no float atomics) → per-Gaussian projection
 //! backward.
 //!
-//! Conventions: see `shared/fixtures/splat/README.md` and the kernel module docs. Float inputs
+//! Conventions: see `tests/fixtures/splat/README.md` and the kernel module docs. Float inputs
 //! may be non-contiguous or of another float dtype: they are made contiguous `f32` first.
 //! Integer outputs use `DType::I32` (the cube backends' default int dtype); their values are
 //! non-negative and written as `u32` bit patterns, which agree with `i32` below `2^31`.

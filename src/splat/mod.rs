@@ -1,6 +1,6 @@
 //! Differentiable 3D Gaussian splatting.
 //!
-//! Three implementations with one behaviour (conventions: `shared/fixtures/splat/README.md`,
+//! Three implementations with one behaviour (conventions: `tests/fixtures/splat/README.md`,
 //! constants: [`constants`]):
 //! - [`reference`](mod@reference): dense burn tensor ops on any backend, autodiff by burn (the oracle);
 //! - [`cpu`]: the tile renderer in multi-threaded Rust, serving the ndarray and flex backends;

@@ -228,16 +228,16 @@ pub fn reevaluate(
     Ok(Some(record))
 }
 
-/// Seconds per iteration used by [`estimate`] before any run of the study has finished:
-/// measured on the 2-core reference machine (release build, `flex`, the demo's benchmark
-/// at `train_cpu.json`'s networks, 2026-12-03 and 2026-12-02; docs/performance.md): a
-/// TexAvatars step without VGG 0.082 s, with VGG 0.44 s; a GaussianAvatars step about
-/// 0.9 s on average over a 3,500-iteration run (it grows with densification); evaluation
-/// 0.45 s per image with LPIPS.
+/// Seconds per iteration used by [`estimate`] before any run of the study has finished: a
+/// TexAvatars step without the VGG loss on the 2-core reference machine (release build,
+/// `flex`, `train_cpu.json`'s networks; docs/performance.md). These reference values are
+/// only a first guess: once a run of the same kind has finished, its own seconds per
+/// iteration replace them.
 pub const REFERENCE_STEP: f64 = 0.082;
 /// A TexAvatars step with the VGG loss on the reference machine (s).
 pub const REFERENCE_VGG_STEP: f64 = 0.44;
-/// A GaussianAvatars step on the reference machine, averaged over a run (s).
+/// A GaussianAvatars step on the reference machine, averaged over a run (s; it grows with
+/// densification).
 pub const REFERENCE_GA_STEP: f64 = 0.9;
 /// One run's evaluation at the demo's stride, with LPIPS, on the reference machine (s).
 pub const REFERENCE_EVAL_RUN: f64 = 80.0;

@@ -363,8 +363,8 @@ impl RefinedParams {
         let frames = HeadPose::load_npz_frames(&npz)?;
         let mut z = Npz::open(&npz)?;
         let stored = z.ints("timestep_index")?.data;
-        // Runs before 2026-12-03 wrote one row per refined timestep, in the index's order,
-        // without `dynamic_offset`; read them as they were written.
+        // Files written by earlier versions hold one row per refined timestep, in the index's
+        // order, without `dynamic_offset`; read them as they were written.
         let by_row = !z.has("dynamic_offset");
         let num_vertices = if by_row {
             if frames.len() != index.timestep_index.len() {

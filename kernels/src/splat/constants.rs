@@ -2,7 +2,7 @@
 //!
 //! The reference (dense burn ops), the CPU tile renderer and the GPU kernels all read these,
 //! so the three implementations cannot drift apart. The values are the conventions of
-//! gsplat's classic pinhole mode, which the fixtures in `shared/fixtures/splat` follow.
+//! gsplat's classic pinhole mode, which the fixtures in `tests/fixtures/splat` follow.
 
 /// Side of a square screen tile in pixels. 16x16 = 256 threads per workgroup on the GPU.
 pub const TILE_SIZE: u32 = 16;

@@ -2,7 +2,7 @@
 //! projection, written once so the forward and backward kernels evaluate bit-identical
 //! expressions.
 //!
-//! Conventions (see `shared/fixtures/splat/README.md`): a world mean `m` maps to camera space
+//! Conventions (see `tests/fixtures/splat/README.md`): a world mean `m` maps to camera space
 //! as `p = R m + t`; `u = fx x / z + cx`; the Jacobian of the projection is evaluated at the
 //! tangents clamped to the widened field of view; `Sigma2D = J R Sigma R^T J^T + LOW_PASS I`;
 //! the conic is `inverse(Sigma2D) = [[a, b], [b, c]]`.

@@ -222,7 +222,7 @@ fn span_forward(
 
 /// How many intersections ahead the tile loops prefetch a Gaussian's projection: the
 /// projections are read in an order unrelated to memory (tile lists follow depth), and
-/// without prefetching the tile loop waited on these loads a quarter of its time.
+/// without prefetching the tile loop spends much of its time waiting on these loads.
 const PREFETCH_AHEAD: usize = 12;
 
 /// Hints the CPU to bring `*p` into cache (both ends: a value may straddle two lines).

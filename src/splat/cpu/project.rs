@@ -1,6 +1,6 @@
 //! Projection of 3D Gaussians to screen space (forward and backward), one Gaussian at a time.
 //!
-//! Conventions: `shared/fixtures/splat/README.md` and [`crate::splat::constants`].
+//! Conventions: `tests/fixtures/splat/README.md` and [`crate::splat::constants`].
 
 // Small fixed-size matrix algebra reads best with explicit indices.
 #![allow(clippy::needless_range_loop)]
