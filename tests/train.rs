@@ -5,6 +5,8 @@
 
 #[path = "train/gaussianavatars.rs"]
 mod gaussianavatars;
+#[path = "train/gpu_sh.rs"]
+mod gpu_sh;
 #[path = "train/study.rs"]
 mod study;
 
@@ -541,7 +543,7 @@ fn flame_refinement_at_zero_reproduces_the_tracked_frames() {
 #[test]
 fn shipped_training_configs_load() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
-    for name in ["train_tiny", "train_cpu", "train_paper"] {
+    for name in ["train_tiny", "train_cpu", "train_paper", "train_paper_cpu"] {
         let c = TrainConfig::load(&dir.join(format!("{name}.json"))).unwrap();
         assert_eq!(c.batch_size, 1, "{name}");
         assert_eq!(
@@ -556,6 +558,13 @@ fn shipped_training_configs_load() {
     assert_eq!(paper.iterations, 600_000);
     assert_eq!(paper.vgg_from(), 300_000);
     assert_eq!(paper.ablations, Ablations::default());
+    // The paper's networks on 2 cores: the same networks and objective, 20,000 iterations,
+    // a checkpoint often enough to lose at most a few minutes of work (docs/training.md).
+    let cpu = TrainConfig::load(&dir.join("train_paper_cpu.json")).unwrap();
+    assert_eq!(cpu.net_config().unwrap(), &NetConfig::paper());
+    assert_eq!((cpu.iterations, cpu.checkpoint_every), (20_000, 200));
+    assert_eq!(cpu.ablations, Ablations::default());
+    assert_eq!(cpu.backend, BackendKind::Flex);
     // Unknown fields and bad values name the field.
     let bad = out_dir("badconfig");
     std::fs::create_dir_all(&bad).unwrap();
