@@ -71,6 +71,23 @@ fn trained_avatar_is_scored_on_every_split() {
         Some(10 + 8 + 8 - 5)
     );
     assert!(opts.out.join("table.md").exists());
+    // Pixels per visible triangle, per split: the tiny 24 x 32 frames show a few dozen of the
+    // head's faces, each over a pixel or more on average.
+    for split in ["val", "test", "free"] {
+        let t = &report.triangles[split];
+        assert_eq!(t.images as usize, report.means[split].images, "{split}");
+        assert!(
+            t.visible_faces >= 1.0 && t.covered_pixels <= (24 * 32) as f64,
+            "{t:?}"
+        );
+        let ratio = t.covered_pixels / t.visible_faces;
+        assert!(
+            (t.pixels_per_triangle - ratio).abs() < 1e-6 * ratio.max(1.0),
+            "{t:?}"
+        );
+    }
+    let regions = std::fs::read_to_string(opts.out.join("regions.md")).expect("regions.md");
+    assert!(regions.contains("pixels per visible triangle"), "{regions}");
     // Mean ± standard deviation over the images.
     assert!(report.table.contains(" ± "), "{}", report.table);
     assert!(report.means["test"].psnr_std > 0.0);

@@ -39,6 +39,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::Camera;
 use crate::error::Result;
 use crate::head::{HeadAsset, HeadPose, lbs};
+pub use crate::mesh::raster::Coverage;
 
 /// The regions, in report order.
 pub const REGIONS: [&str; 7] = [
@@ -183,11 +184,12 @@ impl RegionLabeler {
             .collect()
     }
 
-    /// Region bits of every pixel of `camera`'s image `[H * W]`, `all` included.
-    pub fn label(&self, camera: &Camera, vertices: &[[f32; 3]]) -> Vec<u8> {
+    /// Region bits of every pixel of `camera`'s image `[H * W]`, `all` included, and the
+    /// image's visible faces and the pixels they cover (pixels per visible triangle).
+    pub fn label(&self, camera: &Camera, vertices: &[[f32; 3]]) -> (Vec<u8>, Coverage) {
         let per_face = self.face_regions(vertices);
         let frags = crate::mesh::raster::rasterize(camera, vertices, &self.faces);
-        frags
+        let labels = frags
             .face
             .iter()
             .map(|f| {
@@ -197,7 +199,8 @@ impl RegionLabeler {
                         None => bit("background"),
                     }
             })
-            .collect()
+            .collect();
+        (labels, frags.coverage())
     }
 }
 
@@ -280,10 +283,26 @@ pub struct RegionScore {
     pub error_share: f64,
 }
 
-/// Accumulates squared errors per split and region.
+/// How large the mesh's triangles are in a split's scored images: what decides how many
+/// pixels the per-face parts of the method (the Jacobian, Global UV's blending) can act on.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TriangleCoverage {
+    /// Images counted.
+    pub images: u64,
+    /// Visible faces per image (drawn at one pixel or more), the mean over the images.
+    pub visible_faces: f64,
+    /// Pixels the mesh covers per image, the mean over the images.
+    pub covered_pixels: f64,
+    /// Pixels per visible triangle: the covered pixels over the visible faces, pooled over
+    /// the images.
+    pub pixels_per_triangle: f64,
+}
+
+/// Accumulates squared errors per split and region, and the triangles' coverage.
 #[derive(Default)]
 pub struct RegionTally {
     sums: BTreeMap<String, [(u64, f64); REGIONS.len()]>,
+    coverage: BTreeMap<String, (u64, Coverage)>,
 }
 
 impl RegionTally {
@@ -309,6 +328,31 @@ impl RegionTally {
                 }
             }
         }
+    }
+
+    /// Adds one image's [`Coverage`] (from [`RegionLabeler::label`]).
+    pub fn add_coverage(&mut self, split: &str, c: Coverage) {
+        let (n, sum) = self.coverage.entry(split.to_string()).or_default();
+        *n += 1;
+        sum.visible_faces += c.visible_faces;
+        sum.covered_pixels += c.covered_pixels;
+    }
+
+    /// The triangles' coverage per split.
+    pub fn coverage(&self) -> BTreeMap<String, TriangleCoverage> {
+        self.coverage
+            .iter()
+            .map(|(split, &(n, sum))| {
+                let images = n.max(1) as f64;
+                let c = TriangleCoverage {
+                    images: n,
+                    visible_faces: sum.visible_faces as f64 / images,
+                    covered_pixels: sum.covered_pixels as f64 / images,
+                    pixels_per_triangle: sum.pixels_per_face(),
+                };
+                (split.clone(), c)
+            })
+            .collect()
     }
 
     /// The scores per split and region.

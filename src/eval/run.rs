@@ -26,7 +26,7 @@ use crate::data::{Conditioning, HeadDataset, Identity, PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::drive::render::{check_frame, render_frame};
 use crate::error::{Error, Result};
-use crate::eval::regions::{REGIONS, RegionLabeler, RegionScore, RegionTally};
+use crate::eval::regions::{REGIONS, RegionLabeler, RegionScore, RegionTally, TriangleCoverage};
 use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
 use crate::head::{HeadAsset, HeadPose};
 use crate::io;
@@ -87,6 +87,8 @@ pub struct EvalReport {
     pub table: String,
     /// Each split's error per face region ([`crate::eval::regions`]).
     pub regions: BTreeMap<String, BTreeMap<String, RegionScore>>,
+    /// Each split's pixels per visible triangle.
+    pub triangles: BTreeMap<String, TriangleCoverage>,
     pub seconds: f64,
 }
 
@@ -240,7 +242,8 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
                 translation: item.translation,
                 vertices: item.vertices,
             };
-            let labels = labeler.label(&item.camera, &frame.vertices);
+            let (labels, coverage) = labeler.label(&item.camera, &frame.vertices);
+            region_tally.add_coverage(split, coverage);
             check_frame(
                 avatar.as_ref(),
                 &frame,
@@ -288,11 +291,13 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     let means = tally.means();
     let table = paper_table(&means);
     let regions = region_tally.scores();
+    let triangles = region_tally.coverage();
     let report = EvalReport {
         means,
         images,
         table,
         regions,
+        triangles,
         seconds: start.elapsed().as_secs_f64(),
     };
     let json = serde_json::to_string_pretty(&report)
@@ -302,8 +307,24 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     let path = opts.out.join("table.md");
     std::fs::write(&path, &report.table).map_err(|e| Error::io(&path, e))?;
     let path = opts.out.join("regions.md");
-    std::fs::write(&path, regions_table(&report.regions)).map_err(|e| Error::io(&path, e))?;
+    let md = regions_table(&report.regions) + "\n" + &triangles_table(&report.triangles);
+    std::fs::write(&path, md).map_err(|e| Error::io(&path, e))?;
     Ok(report)
+}
+
+/// Each split's pixels per visible triangle as Markdown.
+pub fn triangles_table(triangles: &BTreeMap<String, TriangleCoverage>) -> String {
+    let mut s = String::from(
+        "| split | images | visible triangles per image | pixels covered per image | pixels per visible triangle |\n|---|---|---|---|---|\n",
+    );
+    for (split, t) in triangles {
+        s += &format!(
+            "| {split} | {} | {:.0} | {:.0} | {:.2} |\n",
+            t.images, t.visible_faces, t.covered_pixels, t.pixels_per_triangle
+        );
+    }
+    s += "\nA triangle is visible where it is the nearest face at one pixel centre or more of the posed mesh (`texavatars::mesh::raster`).\n";
+    s
 }
 
 /// Each split's error per face region as Markdown: PSNR of the region's pooled pixels, its

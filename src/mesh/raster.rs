@@ -26,7 +26,41 @@ pub struct Fragments {
     pub bary: Vec<[f32; 3]>,
 }
 
+/// How many faces a rasterized image shows and how many pixels they cover.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Coverage {
+    /// Faces drawn at one pixel or more (the visible faces).
+    pub visible_faces: u64,
+    /// Pixels some face covers.
+    pub covered_pixels: u64,
+}
+
+impl Coverage {
+    /// Pixels per visible face: `covered_pixels / visible_faces` (0 when nothing is drawn).
+    pub fn pixels_per_face(&self) -> f64 {
+        if self.visible_faces == 0 {
+            0.0
+        } else {
+            self.covered_pixels as f64 / self.visible_faces as f64
+        }
+    }
+}
+
 impl Fragments {
+    /// The visible faces and the pixels they cover.
+    pub fn coverage(&self) -> Coverage {
+        let mut seen = std::collections::HashSet::new();
+        let mut covered = 0;
+        for f in self.face.iter().flatten() {
+            covered += 1;
+            seen.insert(*f);
+        }
+        Coverage {
+            visible_faces: seen.len() as u64,
+            covered_pixels: covered,
+        }
+    }
+
     /// Interpolates a per-vertex attribute at every covered pixel.
     pub fn interpolate<const C: usize>(
         &self,
@@ -202,6 +236,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn coverage_counts_visible_faces_and_their_pixels() {
+        // The square of `known_depth_fills_known_pixels`: two faces over 4 x 4 pixels.
+        let (v, f) = square(2.0, 0.4, 0);
+        let c = rasterize(&camera(), &v, &f).coverage();
+        assert_eq!(
+            c,
+            Coverage {
+                visible_faces: 2,
+                covered_pixels: 16
+            }
+        );
+        assert_eq!(c.pixels_per_face(), 8.0);
+        // A face hidden behind the near square is not visible; nothing drawn gives zero.
+        let (far_v, far_f) = square(3.0, 0.2, 0);
+        let hidden = [v.clone(), far_v].concat();
+        let faces = [f.clone(), far_f.iter().map(|t| t.map(|i| i + 4)).collect()].concat();
+        assert_eq!(
+            rasterize(&camera(), &hidden, &faces)
+                .coverage()
+                .visible_faces,
+            2
+        );
+        let behind: Vec<[f32; 3]> = v.iter().map(|p| [p[0], p[1], -2.0]).collect();
+        let none = rasterize(&camera(), &behind, &f).coverage();
+        assert_eq!((none.visible_faces, none.pixels_per_face()), (0, 0.0));
     }
 
     #[test]
