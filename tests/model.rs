@@ -73,6 +73,12 @@ fn shipped_configs_match_their_constructors() {
             .with_condition(ConditionConfig::default_head())
     );
     assert_eq!(
+        config("mid"),
+        NetConfig::scaled(256, 2)
+            .unwrap()
+            .with_condition(ConditionConfig::default_head())
+    );
+    assert_eq!(
         config("tiny"),
         NetConfig::scaled(32, 16)
             .unwrap()

@@ -287,4 +287,20 @@ fn shipped_study_configs_load() {
             "{name}"
         );
     }
+    // The resolution ladder, fixed before any of its scores: the same four variants (the
+    // full method with two seeds), 3,500 iterations for both models, the VGG loss for the
+    // last tenth, networks scaled with the image so the Gaussians per pixel stay comparable.
+    for (name, subjects, width, uv_res) in [
+        ("study_ladder_200", 2, 138, 128),
+        ("study_ladder_401", 2, 275, 256),
+        ("study_ladder_802", 1, 550, 512),
+    ] {
+        let s = texavatars::study::Study::load(&dir.join(format!("{name}.json"))).unwrap();
+        assert_eq!(s.runs().len(), subjects * 5, "{name}");
+        assert_eq!(s.train.iterations, 3_500, "{name}");
+        assert_eq!(s.train.vgg_from(), 3_150, "{name}");
+        assert_eq!(s.gaussianavatars.as_ref().unwrap().iterations, 3_500);
+        assert_eq!(s.train.net_config().unwrap().uv_res, uv_res, "{name}");
+        assert_eq!(s.synth.width, width, "{name}");
+    }
 }
