@@ -9,6 +9,8 @@ mod gaussianavatars;
 mod gpu_sh;
 #[path = "train/study.rs"]
 mod study;
+#[path = "tiny/mod.rs"]
+mod tiny;
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};

@@ -8,10 +8,9 @@ use texavatars::head::HeadAsset;
 use texavatars::synth::{self, SynthConfig};
 use texavatars::train::{TrainConfig, TrainOptions, train};
 
-/// Renders the tiny synthetic set of the embedded head into `data` (`data/union` is the
-/// training export).
-pub fn synth_data(data: &Path) {
-    let config = SynthConfig {
+/// The tiny synthetic set's config: 24 x 32 pixels, two frames per sequence.
+pub fn synth_config() -> SynthConfig {
+    SynthConfig {
         width: 24,
         height: 32,
         supersample: 1,
@@ -19,9 +18,15 @@ pub fn synth_data(data: &Path) {
         free_frames: 2,
         texture_res: 64,
         ..SynthConfig::default()
-    };
+    }
+}
+
+/// Renders the tiny synthetic set of the embedded head into `data` (`data/union` is the
+/// training export).
+#[allow(dead_code)] // not every test binary that includes this module renders the set
+pub fn synth_data(data: &Path) {
     let head = HeadAsset::embedded().expect("head");
-    synth::generate(&config, &head, data, &mut |_| {}).expect("synth");
+    synth::generate(&synth_config(), &head, data, &mut |_| {}).expect("synth");
 }
 
 /// Trains the tiny networks on `data/union` into `run` for `iterations`, a checkpoint every

@@ -5,8 +5,6 @@
 use std::path::Path;
 use std::process::Command;
 
-use texavatars::synth::SynthConfig;
-
 use super::out_dir;
 
 #[test]
@@ -15,18 +13,9 @@ fn gpu_sh_training_stage_runs_on_lavapipe() {
     let bin = dir.join("bin");
     std::fs::create_dir_all(&bin).unwrap();
     std::os::unix::fs::symlink(env!("CARGO_BIN_EXE_texavatars"), bin.join("texavatars")).unwrap();
-    let synth = SynthConfig {
-        width: 24,
-        height: 32,
-        supersample: 1,
-        frames_per_sequence: 2,
-        free_frames: 2,
-        texture_res: 64,
-        ..SynthConfig::default()
-    };
     std::fs::write(
         dir.join("synth.json"),
-        serde_json::to_string_pretty(&synth).unwrap(),
+        serde_json::to_string_pretty(&crate::tiny::synth_config()).unwrap(),
     )
     .unwrap();
     // No weights: the stage trains without the VGG term and scores without LPIPS.
