@@ -306,7 +306,7 @@ fn wanted(name: &str) -> bool {
 fn main() {
     texavatars::alloc::keep_freed_pages();
     // As the `texavatars` binary does (`cli::run`, src/threads.rs).
-    texavatars::threads::on_pool(run);
+    texavatars::cpu::threads::on_pool(run);
 }
 
 fn run() {

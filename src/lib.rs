@@ -37,7 +37,6 @@ pub mod eval;
 #[cfg(feature = "fusion")]
 pub mod fusion;
 pub mod gaussianavatars;
-pub mod gemm;
 pub mod head;
 pub mod io;
 pub mod lift;
@@ -49,9 +48,9 @@ pub mod splat;
 pub mod study;
 pub mod synth;
 pub mod texel;
-pub mod threads;
 pub mod train;
 pub mod view;
 
 pub use burn;
+pub use texavatars_cpu as cpu;
 pub use texavatars_kernels as kernels;

@@ -655,7 +655,7 @@ fn decoder_outputs_feed_the_lifting_operator() {
 /// the host path, values and gradients, at the decoders' kernel, stride and padding.
 #[test]
 fn conv_transpose_wgpu_matches_host() {
-    use texavatars::model::conv_transpose::{ConvTParams, conv_transpose2d};
+    use texavatars::cpu::conv_transpose::{ConvTParams, conv_transpose2d};
     let p = ConvTParams {
         stride: [2, 2],
         padding: [1, 1],
@@ -707,8 +707,8 @@ fn conv_transpose_wgpu_matches_host() {
 /// kinds, at the view encoder's (stride 2) and the appearance decoder's (stride 1) maps.
 #[test]
 fn conv2d_bias_act_wgpu_matches_host() {
-    use texavatars::model::conv_bias_act::conv2d_bias_act;
-    use texavatars::model::conv2d::Conv2dParams;
+    use texavatars::cpu::conv_bias_act::conv2d_bias_act;
+    use texavatars::cpu::conv2d::Conv2dParams;
     let value = |i: usize, a: usize, m: usize, d: f32| ((i * a % m) as f32 - (m / 2) as f32) / d;
     for stride in [1usize, 2] {
         let p = Conv2dParams {

@@ -92,7 +92,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     };
     // Every other command runs on a pool thread, where each parallel loop starts without a
     // sleep and wake-up of the calling thread (src/threads.rs).
-    crate::threads::on_pool(|| match command {
+    texavatars_cpu::threads::on_pool(|| match command {
         Command::Bench(c) => bench::run(c),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),

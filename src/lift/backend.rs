@@ -23,7 +23,7 @@ use burn_cubecl::CubeBackend;
 
 use crate::kernels::lift::constants::{LOCAL_CHANNELS, OUT_CHANNELS};
 use crate::lift::{LiftParams, cpu, gpu};
-use crate::splat::backend::{HostIo, floats};
+use texavatars_cpu::host::{HostIo, floats};
 
 /// Gradients of a lift's two inputs.
 ///

@@ -1,6 +1,6 @@
 //! Flat index tables of a topology for the GPU lifting: per-row frame indices, corners and
 //! barycentrics, the bilinear taps, and CSR lists that turn every scatter-add of the
-//! backward into a deterministic gather (`kernels/src/lift/csr_gather.rs`).
+//! backward into a deterministic gather (`kernels/gpu/src/lift/csr_gather.rs`).
 
 use crate::kernels::lift::transform::NO_FRAME;
 use crate::lift::Topology;

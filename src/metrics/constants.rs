@@ -1,11 +1,8 @@
 //! Every number the metrics and losses depend on, with where it comes from.
 
-/// SSIM Gaussian window side (pixels). 3DGS / GaussianAvatars `ssim()` (after Wang et al.
-/// 2004): an 11x11 window.
-pub const SSIM_WINDOW: usize = 11;
-
-/// SSIM Gaussian window standard deviation (pixels), as in 3DGS / GaussianAvatars.
-pub const SSIM_SIGMA: f64 = 1.5;
+/// SSIM's Gaussian window: side and standard deviation (pixels), as in 3DGS /
+/// GaussianAvatars; defined with the blur op that applies it.
+pub use texavatars_cpu::blur::{SSIM_SIGMA, SSIM_WINDOW};
 
 /// SSIM stabiliser C1 = (K1 L)^2 with K1 = 0.01 and dynamic range L = 1 (images in [0, 1]).
 pub const SSIM_C1: f32 = 0.01 * 0.01;

@@ -6,7 +6,6 @@
 //! images. The numbers are defined as GaussianAvatars / TexAvatars evaluate: full images,
 //! clamped to [0, 1] for PSNR.
 
-pub mod blur;
 pub mod constants;
 pub mod lpips;
 pub mod nets;

@@ -28,7 +28,9 @@ use burn::backend::autodiff::{
     ops::{Backward, Ops, OpsKind},
 };
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, DispatchDevice, ExtensionType, TensorMetadata, backend_extension};
+use burn::backend::{
+    Backend, DispatchDevice, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
+};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
@@ -38,7 +40,7 @@ use crate::metrics::lpips::channel_constant;
 use crate::metrics::nets::{Features, Net};
 use crate::metrics::vgg_cpu::{Saved, VggCpu};
 use crate::metrics::weights::{self, HostWeights};
-use crate::splat::backend::{HostIo, floats};
+use texavatars_cpu::host::{HostIo, floats};
 
 /// VGG16 perceptual loss (frozen backbone, gradients reach the images).
 #[derive(Module, Debug)]
@@ -76,12 +78,23 @@ fn nhw<B: Backend>(t: &FloatTensor<B>) -> [usize; 3] {
     [s[0], s[2], s[3]]
 }
 
-impl<H: HostIo> PerceptualBackend for H {
-    fn vgg_l1(ImagePair { a, b }: ImagePair<Self>, net: CpuVgg) -> FloatTensor<Self> {
-        let device = a.device();
-        let dims = nhw::<H>(&a);
-        let (loss, _) = net.0.loss(&H::read(a), &H::read(b), dims, [false; 2]);
-        floats::<H>(vec![loss as f32], &[1], &device)
+/// The loss on host memory, without a backward: the CPU backends' [`PerceptualBackend`].
+fn host_vgg_l1<H: HostIo>(ImagePair { a, b }: ImagePair<H>, net: CpuVgg) -> FloatTensor<H> {
+    let device = a.device();
+    let dims = nhw::<H>(&a);
+    let (loss, _) = net.0.loss(&H::read(a), &H::read(b), dims, [false; 2]);
+    floats::<H>(vec![loss as f32], &[1], &device)
+}
+
+impl PerceptualBackend for Flex {
+    fn vgg_l1(ab: ImagePair<Self>, net: CpuVgg) -> FloatTensor<Self> {
+        host_vgg_l1(ab, net)
+    }
+}
+
+impl PerceptualBackend for NdArray {
+    fn vgg_l1(ab: ImagePair<Self>, net: CpuVgg) -> FloatTensor<Self> {
+        host_vgg_l1(ab, net)
     }
 }
 
@@ -107,7 +120,7 @@ impl<B: Backend> Backward<B, 2> for VggBackwardOp {
 
 /// The value of a one-element float tensor.
 fn read_scalar<B: Backend>(t: FloatTensor<B>) -> f32 {
-    crate::splat::backend::read_floats::<B>(t)
+    texavatars_cpu::host::read_floats::<B>(t)
         .first()
         .copied()
         .unwrap_or(0.0)

@@ -9,18 +9,8 @@
 
 use burn::tensor::Tensor;
 
-pub use crate::metrics::blur::gaussian_blur;
-use crate::metrics::constants::{SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW};
-
-/// The normalised 1D Gaussian window (the 2D window is its outer product).
-pub fn gaussian_window() -> Vec<f32> {
-    let c = (SSIM_WINDOW / 2) as f64;
-    let g: Vec<f64> = (0..SSIM_WINDOW)
-        .map(|x| (-(x as f64 - c).powi(2) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp())
-        .collect();
-    let s: f64 = g.iter().sum();
-    g.iter().map(|v| (v / s) as f32).collect()
-}
+use crate::metrics::constants::{SSIM_C1, SSIM_C2};
+pub use texavatars_cpu::blur::{gaussian_blur, gaussian_window};
 
 /// The SSIM map.
 ///

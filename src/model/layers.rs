@@ -28,12 +28,12 @@ use burn::tensor::{Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::constants::LEAKY_RELU_SLOPE;
-use super::conv_bias_act::conv2d_bias_act;
-use super::conv_t_bias_act::conv_transpose2d_bias_act;
-use super::conv_transpose::{ConvTParams, conv_transpose2d};
-use super::conv2d::{Conv2dParams, conv2d};
-pub use super::weight_norm::weight_norm;
-use super::wn_linear::wn_linear;
+use texavatars_cpu::conv_bias_act::conv2d_bias_act;
+use texavatars_cpu::conv_t_bias_act::conv_transpose2d_bias_act;
+use texavatars_cpu::conv_transpose::{ConvTParams, conv_transpose2d};
+use texavatars_cpu::conv2d::{Conv2dParams, conv2d};
+pub use texavatars_cpu::weight_norm::weight_norm;
+use texavatars_cpu::wn_linear::wn_linear;
 
 /// LeakyReLU with the networks' slope ([`LEAKY_RELU_SLOPE`] = 0.2).
 pub fn leaky_relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {

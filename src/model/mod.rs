@@ -8,21 +8,12 @@
 //! constants that are not sizes are in [`constants`].
 
 pub mod avatar;
-pub mod bias_act;
 pub mod constants;
-pub mod conv2d;
-pub mod conv_bias_act;
-pub mod conv_t_bias_act;
-pub mod conv_transpose;
 pub mod decoders;
 pub mod drivable;
 pub mod layers;
 pub mod net;
-#[cfg(test)]
-mod op_check;
 pub mod pluecker;
-pub mod weight_norm;
-pub mod wn_linear;
 
 pub use avatar::{Ablations, Avatar, AvatarConfig, AvatarOutput, LiftSetup};
 pub use decoders::{

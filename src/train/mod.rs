@@ -22,7 +22,6 @@
 //! Seeds: the device is seeded with the config's seed before the networks are built, and the
 //! frame order is a function of the seed and the iteration.
 
-pub mod adam;
 pub mod config;
 pub mod constants;
 pub mod loader;
@@ -247,7 +246,7 @@ pub fn lr_scheduler(config: &TrainConfig) -> ModuleLrScheduler {
 
 /// Adam with the config's betas and epsilon.
 pub fn optimizer(config: &TrainConfig) -> ModuleOptimizer {
-    adam::FusedAdam {
+    texavatars_cpu::adam::FusedAdam {
         beta_1: config.adam_beta1 as f32,
         beta_2: config.adam_beta2 as f32,
         epsilon: config.adam_eps as f32,

@@ -183,7 +183,7 @@ fn every_kernel_fits_webgpu_default_workgroup_memory() {
             "{name}: {bytes} bytes of workgroup memory, over WebGPU's default {WEBGPU_WORKGROUP_STORAGE}"
         );
         if name == "radix_scatter" {
-            // The 8-bit pass's block-local sort (kernels/src/splat/radix_sort/scatter.rs)
+            // The 8-bit pass's block-local sort (kernels/gpu/src/splat/radix_sort/scatter.rs)
             // declares about 14 KiB: counts, segment totals, sorted entries, digit starts.
             // Fewer counted bytes would mean the measure misses declarations.
             assert!(

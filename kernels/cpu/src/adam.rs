@@ -36,7 +36,7 @@ use burn::optim::{AdamState, AdaptiveMomentumState, LearningRate, ModuleOptimize
 use burn::tensor::{Device, Tensor};
 use rayon::prelude::*;
 
-use crate::splat::backend::HostIo;
+use crate::host::HostIo;
 
 /// Values per task (64 K floats, 256 KiB per tensor).
 const CHUNK: usize = 1 << 16;

@@ -34,9 +34,25 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::metrics::constants::SSIM_WINDOW;
-use crate::metrics::ssim::gaussian_window;
-use crate::splat::backend::{HostIo, floats};
+use crate::host::{HostIo, floats};
+
+/// The window's side (pixels): SSIM's 11x11 Gaussian window in 3DGS / GaussianAvatars
+/// (`utils/loss_utils.py`, `ssim()`, after Wang et al. 2004).
+pub const SSIM_WINDOW: usize = 11;
+
+/// The window's standard deviation (pixels), as in 3DGS / GaussianAvatars (`create_window`'s
+/// `gaussian(window_size, 1.5)`).
+pub const SSIM_SIGMA: f64 = 1.5;
+
+/// The normalised 1D Gaussian window (the 2D window is its outer product).
+pub fn gaussian_window() -> Vec<f32> {
+    let c = (SSIM_WINDOW / 2) as f64;
+    let g: Vec<f64> = (0..SSIM_WINDOW)
+        .map(|x| (-(x as f64 - c).powi(2) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp())
+        .collect();
+    let s: f64 = g.iter().sum();
+    g.iter().map(|v| (v / s) as f32).collect()
+}
 
 /// Backends with the Gaussian blur of this module.
 #[backend_extension(NdArray, Flex, Cube, Autodiff)]

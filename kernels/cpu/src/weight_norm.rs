@@ -43,7 +43,7 @@ use burn::backend::{
 use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
-use crate::splat::backend::{HostIo, floats};
+use crate::host::{HostIo, floats};
 
 /// Values of `v` per task (64 K floats, 256 KiB).
 const CHUNK: usize = 1 << 16;
@@ -351,10 +351,10 @@ mod tests {
     use super::*;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    use crate::model::op_check::{check_finite_differences, host, output_and_gradients};
+    use crate::check::{check_finite_differences, host, output_and_gradients};
 
     fn max_rel(a: &[f32], b: &[f32]) -> f32 {
-        crate::model::op_check::max_rel(a, b, 1e-6)
+        crate::check::max_rel(a, b, 1e-6)
     }
 
     /// The reference twin: the composition of burn's ops (the layers' formula before this
@@ -405,7 +405,7 @@ mod tests {
     #[test]
     fn default_bodies_match_the_host_passes() {
         type F = burn::backend::Flex;
-        let t = crate::model::op_check::flex_pattern;
+        let t = crate::check::flex_pattern;
         let shape = [3usize, 4, 2, 2];
         let (v, dw) = (t(&shape, 0, 0.0), t(&shape, 5, 0.0));
         let g = t(&[4], 9, 3.0);

@@ -45,10 +45,10 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvOptions;
 use rayon::prelude::*;
 
-use super::constants::planes_per_task;
 use super::conv_transpose::{ConvTParams, Dims, col2im_plane, im2col, with_columns};
+use crate::constants::planes_per_task;
 use crate::gemm::{GradientSum, matmul, matmul_uninit};
-use crate::splat::backend::{HostIo, floats};
+use crate::host::{HostIo, floats};
 
 /// Stride and padding of a convolution (dilation 1, one group):
 /// `H_out = (H + 2·padding - k_h) / stride + 1`, likewise for the width.
@@ -358,8 +358,8 @@ impl<B: Backend + Conv2dBackend, C: CheckpointStrategy> Conv2dBackend for Autodi
 
 #[cfg(test)]
 mod tests {
-    use super::super::op_check::{check_finite_differences, host, max_rel, output_and_gradients};
     use super::*;
+    use crate::check::{check_finite_differences, host, max_rel, output_and_gradients};
     use burn::tensor::{Device, Distribution, TensorData};
 
     /// Kernel, stride, padding, input size, batch.

@@ -1,6 +1,6 @@
 //! A weight-normalised linear map, `y = x · wᵀ` with `w = g · v / ||v||` (the layers' form:
 //! one norm over all of `v`, `g` per output feature), as one op with a handwritten backward.
-//! The bias stays a plain add outside it ([`super::layers::WnLinear`]).
+//! The bias stays a plain add outside it (the app's `WnLinear` layer).
 //!
 //! Why: Exp2Code's linear layer is the decoders' largest weight (`64·C_code x C_cond`:
 //! 16,384 x 243 = 4.0 M values in the `paper` configuration) and sees one condition vector per
@@ -44,7 +44,7 @@ use burn::tensor::Tensor;
 use rayon::prelude::*;
 
 use super::weight_norm::{self, VG, dot};
-use crate::splat::backend::{HostIo, floats};
+use crate::host::{HostIo, floats};
 
 /// Output rows of `v` per task: 256 rows of the `paper` layer's 243 inputs are about 250 KB.
 const ROWS_PER_TASK: usize = 256;
@@ -338,7 +338,7 @@ mod tests {
     use burn::tensor::module::linear;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    use crate::model::op_check::{
+    use crate::check::{
         check_finite_differences, compare_outputs, host, layer_output_and_gradients,
     };
 
@@ -381,7 +381,7 @@ mod tests {
     #[test]
     fn default_bodies_match_the_host_passes() {
         type F = burn::backend::Flex;
-        let t = crate::model::op_check::flex_pattern;
+        let t = crate::check::flex_pattern;
         let (x, v, g, dy) = (
             t(&[2, 5], 0, 0.0),
             t(&[3, 5], 3, 0.0),
@@ -394,7 +394,7 @@ mod tests {
             g: g.clone(),
         };
         let max_rel = |a: FloatTensor<F>, b: FloatTensor<F>| {
-            crate::model::op_check::max_rel(&F::floats(a), &F::floats(b), 1e-6)
+            crate::check::max_rel(&F::floats(a), &F::floats(b), 1e-6)
         };
         let fused = <F as WnLinearBackend>::wn_linear(xvg());
         assert!(

@@ -1,29 +1,28 @@
-//! A decoder layer as one op: transposed convolution, bias (untied `[C, H, W]` or per
-//! channel `[C]`) and LeakyReLU (or none, for a decoder's last layer), with one handwritten
-//! backward.
+//! A plain 3x3 layer as one op: convolution ([`super::conv2d`]), bias (untied `[C, H, W]` or
+//! per channel `[C]`) and LeakyReLU (or none), with one handwritten backward; the plain
+//! convolutions' twin of [`super::conv_t_bias_act`].
 //!
-//! Why: as two ops ([`super::conv_transpose`], then [`super::bias_act`]) the forward wrote
-//! every output plane twice, once scattered by `col2im` and once more, after all planes were
-//! done and out of cache, by the bias and activation pass, with a second buffer. Here the
-//! task that scatters a plane adds its bias and applies the activation at once, into the one
-//! buffer. The backward forms the masked gradient and the bias gradient in one pass (as
-//! `bias_act` does) and hands it to the transposed convolution's backward (`im2col` and two
-//! products, as `conv_transpose` does); one autodiff node instead of two.
+//! Why: as two ops (`conv2d`, then [`super::bias_act`]) the forward wrote the output once in
+//! the product and once more in a separate pass over all planes, and the graph held two
+//! nodes. Here the bias and the activation are applied to each batch item's planes right
+//! after its product wrote them, in the one buffer, and the backward forms the masked
+//! gradient and the bias gradient in one pass (as `bias_act` does) and hands it to the
+//! convolution's backward (`im2col` and two products, `col2im`).
 //!
-//! - forward: `out = act(conv_t(x, W) + bias)`, `act(z) = max(z, slope·z)`;
+//! - forward: `out = act(conv(x, W) + bias)`, `act(z) = max(z, slope·z)`;
 //! - backward from the saved output: `dz = dout` where `out >= 0`, `slope · dout` elsewhere;
 //!   `dbias` = `dz` summed over the batch (untied) or the batch and pixels (per channel);
-//!   `dx`, `dW` = the transposed convolution's backward of `dz`.
+//!   `dx`, `dW` = the convolution's backward of `dz`.
 //!
-//! Thread mapping (CPU): as `conv_transpose` (products on rayon through `gemm`, `col2im`
-//! and the epilogue parallel over output channels, `im2col` over the rows of the column
-//! matrix), and `bias_act`'s backward over (batch item, channel) planes.
+//! Thread mapping (CPU): as `conv2d` (products on rayon through `gemm`, `im2col` over the
+//! rows of the column matrix, `col2im` over input planes); the epilogue and `bias_act`'s
+//! backward over output planes.
 //!
 //! Backends: flex and ndarray run both passes here; burn's cubecl backend (wgpu) composes
-//! burn's `conv_transpose2d` and its backward functions with `bias_act`'s composition of
-//! burn's tensor ops (the trait's default bodies). The reference twin is burn's
-//! `conv_transpose2d`, bias add and `leaky_relu` under burn's autodiff; the tests compare
-//! values and all three gradients with it and check finite differences.
+//! burn's `conv2d` and its backward functions with `bias_act`'s composition of burn's tensor
+//! ops (the trait's default bodies). The reference twin is burn's `conv2d`, bias add and
+//! `leaky_relu` under burn's autodiff; the tests compare values and all three gradients with
+//! it and check finite differences.
 
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
@@ -41,16 +40,16 @@ use burn::backend::{
 use burn::tensor::Tensor;
 
 use super::bias_act::{self, OutBias, epilogue_plane};
-use super::conv_transpose::{self, ConvTParams, Dims};
-use crate::splat::backend::{HostIo, floats};
+use super::conv2d::{self, Conv2dParams};
+use crate::host::{HostIo, floats};
 
 /// A layer's three tensors: its input, weight and bias, or their gradients.
 ///
 /// # Shapes
-/// - `x`: [N, C_in, H, W]; `weight`: [C_in, C_out, k_h, k_w]; `bias`: `[C_out]` or
+/// - `x`: [N, C_in, H, W]; `weight`: [C_out, C_in, k_h, k_w]; `bias`: `[C_out]` or
 ///   [C_out, H_out, W_out]
 #[derive(ExtensionType, Debug, Clone)]
-pub struct ConvTBias<B: Backend> {
+pub struct ConvBias<B: Backend> {
     pub x: FloatTensor<B>,
     pub weight: FloatTensor<B>,
     pub bias: FloatTensor<B>,
@@ -58,77 +57,76 @@ pub struct ConvTBias<B: Backend> {
 
 /// Backends with the fused layer of this module.
 #[backend_extension(NdArray, Flex, Cube, Autodiff)]
-pub trait ConvTBiasActBackend: Backend {
-    /// `act(conv_t(x, weight) + bias)` (`act` LeakyReLU or the identity) →
-    /// `[N, C_out, H_out, W_out]`. Default: burn's `conv_transpose2d`, then `bias_act`'s
-    /// composition of burn's ops.
-    fn conv_t_bias_act(
-        #[extension_type] l: ConvTBias<Self>,
-        p: ConvTParams,
+pub trait Conv2dBiasActBackend: Backend {
+    /// `act(conv(x, weight) + bias)` (`act` LeakyReLU or the identity) →
+    /// `[N, C_out, H_out, W_out]`. Default: burn's `conv2d`, then `bias_act`'s composition of
+    /// burn's ops.
+    fn conv_bias_act(
+        #[extension_type] l: ConvBias<Self>,
+        p: Conv2dParams,
         act: bool,
     ) -> FloatTensor<Self> {
         use burn::backend::ops::ModuleOps;
-        let y = <Self as ModuleOps<Self>>::conv_transpose2d(l.x, l.weight, None, p.options());
+        let y = <Self as ModuleOps<Self>>::conv2d(l.x, l.weight, None, p.options());
         bias_act::composed_forward::<Self>(OutBias { y, bias: l.bias }, act)
     }
 
     /// Backward from the layer's input, weight, output `out` and its gradient → the gradients
-    /// of `x`, `weight` and the bias (`bias_shape`). Default: `bias_act`'s composition of
-    /// burn's ops, then burn's transposed-convolution backward functions.
-    fn conv_t_bias_act_backward(
-        #[extension_type] xw: ConvTBias<Self>,
+    /// of `x`, `weight` and the bias. Default: `bias_act`'s composition of burn's ops, then
+    /// burn's convolution backward functions.
+    fn conv_bias_act_backward(
+        #[extension_type] xw: ConvBias<Self>,
         out: FloatTensor<Self>,
         grad: FloatTensor<Self>,
-        p: ConvTParams,
+        p: Conv2dParams,
         act: bool,
-    ) -> ConvTBias<Self> {
+    ) -> ConvBias<Self> {
         use burn::backend::ops::ModuleOps;
         let bias_shape = xw.bias.shape().to_vec();
         let dz = bias_act::composed_backward::<Self>(out, grad, act, bias_shape);
         let o = p.options();
-        ConvTBias {
-            x: <Self as ModuleOps<Self>>::conv_transpose2d_x_backward(
+        ConvBias {
+            x: <Self as ModuleOps<Self>>::conv2d_x_backward(
+                xw.x.clone(),
                 xw.weight.clone(),
                 dz.y.clone(),
                 o.clone(),
             ),
-            weight: <Self as ModuleOps<Self>>::conv_transpose2d_weight_backward(
-                xw.x, xw.weight, dz.y, o,
-            ),
+            weight: <Self as ModuleOps<Self>>::conv2d_weight_backward(xw.x, xw.weight, dz.y, o),
             bias: dz.bias,
         }
     }
 }
 
-/// `act(conv_t(x, weight) + bias)` on any backend (see the module docs): LeakyReLU
-/// ([`super::constants::LEAKY_RELU_SLOPE`]) with `act`, the identity without.
+/// `act(conv2d(x, weight) + bias)` on any backend (see the module docs): LeakyReLU
+/// ([`crate::constants::LEAKY_RELU_SLOPE`]) with `act`, the identity without.
 ///
 /// # Shapes
-/// - `x`: [N, C_in, H, W]; `weight`: [C_in, C_out, k_h, k_w]
+/// - `x`: [N, C_in, H, W]; `weight`: [C_out, C_in, k_h, k_w]
 /// - `bias`: `[C_out]` or [C_out, H_out, W_out]
 /// - returns [N, C_out, H_out, W_out]
 ///
 /// # Panics
-/// When the channel counts disagree, the padding leaves no output or the bias matches neither
-/// shape (the layers check their configuration when they are built).
-pub fn conv_transpose2d_bias_act<const D: usize>(
+/// When the channel counts disagree, the kernel does not fit the padded input or the bias
+/// matches neither shape (the layers check their configuration when they are built).
+pub fn conv2d_bias_act<const D: usize>(
     x: Tensor<4>,
     weight: Tensor<4>,
     bias: Tensor<D>,
-    p: ConvTParams,
+    p: Conv2dParams,
     act: bool,
 ) -> Tensor<4> {
     let [_, ci, h, w] = x.dims();
-    let [wci, co, kh, kw] = weight.dims();
+    let [co, wci, kh, kw] = weight.dims();
     assert_eq!(
         ci, wci,
-        "conv_transpose2d_bias_act: input channels {ci}, weight {wci}"
+        "conv2d_bias_act: input channels {ci}, weight {wci}"
     );
     let Some([ho, wo]) = p.output_size([h, w], [kh, kw]) else {
         panic!(
-            "conv_transpose2d_bias_act: padding {:?} leaves no output for a {h}x{w} input and \
-             a {kh}x{kw} kernel",
-            p.padding
+            "conv2d_bias_act: a {kh}x{kw} kernel with stride {:?} and padding {:?} does not fit \
+             a {h}x{w} input",
+            p.stride, p.padding
         );
     };
     let ok = match bias.dims().as_slice() {
@@ -138,50 +136,50 @@ pub fn conv_transpose2d_bias_act<const D: usize>(
     };
     assert!(
         ok,
-        "conv_transpose2d_bias_act: bias {:?} for an output [N, {co}, {ho}, {wo}]",
+        "conv2d_bias_act: bias {:?} for an output [N, {co}, {ho}, {wo}]",
         bias.dims()
     );
-    let l = ConvTBias {
+    let l = ConvBias {
         x: x.into_dispatch(),
         weight: weight.into_dispatch(),
         bias: bias.into_dispatch(),
     };
     Tensor::from_dispatch(
-        <burn::backend::Dispatch as ConvTBiasActBackend>::conv_t_bias_act(l, p, act),
+        <burn::backend::Dispatch as Conv2dBiasActBackend>::conv_bias_act(l, p, act),
     )
 }
 
 // ---------------------------------------------------------------------------------------------
 // Host implementation.
 
-impl<H: HostIo> ConvTBiasActBackend for H {
-    fn conv_t_bias_act(l: ConvTBias<Self>, p: ConvTParams, act: bool) -> FloatTensor<Self> {
+impl<H: HostIo> Conv2dBiasActBackend for H {
+    fn conv_bias_act(l: ConvBias<Self>, p: Conv2dParams, act: bool) -> FloatTensor<Self> {
         let device = l.x.device();
-        let bias_shape = l.bias.shape().to_vec();
-        let d = Dims::new(&l.x.shape().to_vec(), &l.weight.shape().to_vec(), &p);
-        let untied = bias_shape.len() == 3;
+        let untied = l.bias.shape().to_vec().len() == 3;
+        let d = conv2d::dims(&l.x.shape().to_vec(), &l.weight.shape().to_vec(), &p);
         let bias = H::read(l.bias);
-        let out = conv_transpose::host_forward_then(
+        let out = conv2d::host_forward_then(
             &H::read(l.x),
             &H::read(l.weight),
             d,
-            &p,
-            |c, plane| epilogue_plane(plane, &bias, c, untied, act),
+            &p.map(),
+            Some(|c: usize, plane: &mut [f32]| epilogue_plane(plane, &bias, c, untied, act)),
         );
-        floats::<H>(out, &[d.n, d.co, d.ho, d.wo], &device)
+        // In the shared map's names the convolution's output is the map's input side.
+        floats::<H>(out, &[d.n, d.ci, d.h, d.w], &device)
     }
 
-    fn conv_t_bias_act_backward(
-        xw: ConvTBias<Self>,
+    fn conv_bias_act_backward(
+        xw: ConvBias<Self>,
         out: FloatTensor<Self>,
         grad: FloatTensor<Self>,
-        p: ConvTParams,
+        p: Conv2dParams,
         act: bool,
-    ) -> ConvTBias<Self> {
+    ) -> ConvBias<Self> {
         let device = out.device();
         let bias_shape = xw.bias.shape().to_vec();
         let out_shape = out.shape().to_vec();
-        let d = Dims::new(&xw.x.shape().to_vec(), &xw.weight.shape().to_vec(), &p);
+        let d = conv2d::dims(&xw.x.shape().to_vec(), &xw.weight.shape().to_vec(), &p);
         // dz in place of the output gradient, and the bias gradient, in one pass.
         let mut dz = H::floats(grad);
         let db = bias_act::host_backward(
@@ -190,10 +188,9 @@ impl<H: HostIo> ConvTBiasActBackend for H {
             bias_act::dims(&out_shape, &bias_shape),
             act,
         );
-        let (dx, dw) =
-            conv_transpose::host_backward(&H::read(xw.x), &H::read(xw.weight), &dz, d, &p);
-        ConvTBias {
-            x: floats::<H>(dx, &[d.n, d.ci, d.h, d.w], &device),
+        let (dx, dw) = conv2d::host_backward(&H::read(xw.x), &H::read(xw.weight), &dz, d, &p.map());
+        ConvBias {
+            x: floats::<H>(dx, &[d.n, d.co, d.ho, d.wo], &device),
             weight: floats::<H>(dw, &[d.ci, d.co, d.kh, d.kw], &device),
             bias: floats::<H>(db, &bias_shape, &device),
         }
@@ -201,24 +198,24 @@ impl<H: HostIo> ConvTBiasActBackend for H {
 }
 
 /// The GPU backend composes burn's ops (the trait's default bodies).
-impl ConvTBiasActBackend for Cube {}
+impl Conv2dBiasActBackend for Cube {}
 
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
 #[derive(Debug)]
-struct ConvTBiasActBackwardOp;
+struct ConvBiasActBackwardOp;
 
 /// The saved input, weight, bias (for its shape), output, stride and padding, and `act`.
-type SavedState<B> = (ConvTBias<B>, FloatTensor<B>, ConvTParams, bool);
+type SavedState<B> = (ConvBias<B>, FloatTensor<B>, Conv2dParams, bool);
 
-impl<B: Backend + ConvTBiasActBackend> Backward<B, 3> for ConvTBiasActBackwardOp {
+impl<B: Backend + Conv2dBiasActBackend> Backward<B, 3> for ConvBiasActBackwardOp {
     type State = SavedState<B>;
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         let (xw, out, p, act) = ops.state;
-        let g = B::conv_t_bias_act_backward(xw, out, grad, p, act);
+        let g = B::conv_bias_act_backward(xw, out, grad, p, act);
         let [x_node, weight_node, bias_node] = ops.parents;
         for (node, grad) in [(x_node, g.x), (weight_node, g.weight), (bias_node, g.bias)] {
             if let Some(node) = node {
@@ -228,44 +225,44 @@ impl<B: Backend + ConvTBiasActBackend> Backward<B, 3> for ConvTBiasActBackwardOp
     }
 }
 
-impl<B: Backend + ConvTBiasActBackend, C: CheckpointStrategy> ConvTBiasActBackend
+impl<B: Backend + Conv2dBiasActBackend, C: CheckpointStrategy> Conv2dBiasActBackend
     for Autodiff<B, C>
 {
-    fn conv_t_bias_act(l: ConvTBias<Self>, p: ConvTParams, act: bool) -> FloatTensor<Self> {
+    fn conv_bias_act(l: ConvBias<Self>, p: Conv2dParams, act: bool) -> FloatTensor<Self> {
         let nodes = [l.x.node(), l.weight.node(), l.bias.node()];
-        let inner = ConvTBias {
+        let inner = ConvBias {
             x: l.x.into_primitive(),
             weight: l.weight.into_primitive(),
             bias: l.bias.into_primitive(),
         };
-        match ConvTBiasActBackwardOp
+        match ConvBiasActBackwardOp
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
         {
             OpsKind::Tracked(prep) => {
-                let out = B::conv_t_bias_act(inner.clone(), p, act);
+                let out = B::conv_bias_act(inner.clone(), p, act);
                 prep.finish((inner, out.clone(), p, act), out)
             }
-            OpsKind::UnTracked(prep) => prep.finish(B::conv_t_bias_act(inner, p, act)),
+            OpsKind::UnTracked(prep) => prep.finish(B::conv_bias_act(inner, p, act)),
         }
     }
 
-    fn conv_t_bias_act_backward(
-        xw: ConvTBias<Self>,
+    fn conv_bias_act_backward(
+        xw: ConvBias<Self>,
         out: FloatTensor<Self>,
         grad: FloatTensor<Self>,
-        p: ConvTParams,
+        p: Conv2dParams,
         act: bool,
-    ) -> ConvTBias<Self> {
-        let inner = ConvTBias {
+    ) -> ConvBias<Self> {
+        let inner = ConvBias {
             x: xw.x.into_primitive(),
             weight: xw.weight.into_primitive(),
             bias: xw.bias.into_primitive(),
         };
         let g =
-            B::conv_t_bias_act_backward(inner, out.into_primitive(), grad.into_primitive(), p, act);
-        ConvTBias {
+            B::conv_bias_act_backward(inner, out.into_primitive(), grad.into_primitive(), p, act);
+        ConvBias {
             x: Self::from_inner(g.x),
             weight: Self::from_inner(g.weight),
             bias: Self::from_inner(g.bias),
@@ -275,22 +272,22 @@ impl<B: Backend + ConvTBiasActBackend, C: CheckpointStrategy> ConvTBiasActBacken
 
 #[cfg(test)]
 mod tests {
-    use super::super::constants::LEAKY_RELU_SLOPE;
-    use super::super::op_check::{
+    use super::*;
+    use crate::check::{
         check_finite_differences, compare_outputs, host, layer_output_and_gradients,
     };
-    use super::*;
+    use crate::constants::LEAKY_RELU_SLOPE;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    /// The reference twin: burn's `conv_transpose2d`, bias add and `leaky_relu`.
+    /// The reference twin: burn's `conv2d`, bias add and `leaky_relu`.
     fn reference<const D: usize>(
         x: Tensor<4>,
         w: Tensor<4>,
         bias: Tensor<D>,
-        p: ConvTParams,
+        p: Conv2dParams,
         act: bool,
     ) -> Tensor<4> {
-        let y = burn::tensor::module::conv_transpose2d(x, w, None, p.options());
+        let y = burn::tensor::module::conv2d(x, w, None, p.options());
         let [_, c, h, wd] = y.dims();
         let b = if D == 1 {
             bias.reshape([1, c, 1, 1])
@@ -308,11 +305,13 @@ mod tests {
     /// Kernel, stride, padding, input size, batch.
     type Case = ([usize; 2], [usize; 2], [usize; 2], [usize; 2], usize);
 
-    /// The decoders' layer (k4 s2 p1) and two other index maps.
+    /// The appearance decoder's middle (3x3 s1 p1), the view encoder's layer (3x3 s2 p1, an
+    /// even side, so its last row is read only by border taps) and a map whose stride is
+    /// larger than the kernel (input pixels no tap reads get a zero gradient).
     const CASES: [Case; 3] = [
-        ([4, 4], [2, 2], [1, 1], [5, 6], 2),
-        ([3, 3], [1, 1], [1, 1], [4, 3], 1),
-        ([2, 1], [3, 2], [0, 0], [3, 2], 2),
+        ([3, 3], [1, 1], [1, 1], [5, 6], 2),
+        ([3, 3], [2, 2], [1, 1], [8, 8], 1),
+        ([2, 1], [3, 2], [0, 0], [8, 5], 2),
     ];
 
     /// [`CASES`] with both bias kinds, with and without the activation, against the
@@ -320,25 +319,25 @@ mod tests {
     fn check_against_burn(device: Device) {
         for (i, &(k, stride, padding, [h, w], n)) in CASES.iter().enumerate() {
             let (ci, co) = (3, 2);
-            let p = ConvTParams { stride, padding };
+            let p = Conv2dParams { stride, padding };
             let [ho, wo] = p.output_size([h, w], k).expect("valid case");
             device.seed(i as u64);
             let normal = Distribution::Normal(0.0, 1.0);
             let x = Tensor::<4>::random([n, ci, h, w], normal, &device);
-            let wt = Tensor::<4>::random([ci, co, k[0], k[1]], normal, &device);
+            let wt = Tensor::<4>::random([co, ci, k[0], k[1]], normal, &device);
             let up = Tensor::<4>::random([n, co, ho, wo], normal, &device);
             let untied = Tensor::<3>::random([co, ho, wo], normal, &device);
             let per_channel = Tensor::<1>::random([co], normal, &device);
             for act in [false, true] {
                 let ours = layer_output_and_gradients([&x, &wt], &untied, &up, |x, w, b| {
-                    conv_transpose2d_bias_act(x, w, b, p, act)
+                    conv2d_bias_act(x, w, b, p, act)
                 });
                 let want = layer_output_and_gradients([&x, &wt], &untied, &up, |x, w, b| {
                     reference(x, w, b, p, act)
                 });
                 compare_outputs(&ours, &want, &format!("case {i}, untied, act {act}"));
                 let ours = layer_output_and_gradients([&x, &wt], &per_channel, &up, |x, w, b| {
-                    conv_transpose2d_bias_act(x, w, b, p, act)
+                    conv2d_bias_act(x, w, b, p, act)
                 });
                 let want = layer_output_and_gradients([&x, &wt], &per_channel, &up, |x, w, b| {
                     reference(x, w, b, p, act)
@@ -359,22 +358,24 @@ mod tests {
     }
 
     /// Central finite differences of `sum(layer(x, w, b) · up)` with the activation, for all
-    /// three inputs. The pre-activations stay at least 0.05 from the kink (built and checked
-    /// below), and a step of 1e-2 moves one by at most 1e-2, so no step crosses it.
+    /// three inputs, on the view encoder's index map (3x3, stride 2, padding 1). The
+    /// pre-activations stay at least 0.05 from the kink (built and checked below); inputs and
+    /// weights are below 1 in magnitude, so a step of 1e-2 in one entry moves a
+    /// pre-activation by at most 1e-2 and no step crosses the kink.
     #[test]
     fn finite_differences() {
         let device = Device::flex().autodiff();
-        let p = ConvTParams {
+        let p = Conv2dParams {
             stride: [2, 2],
             padding: [1, 1],
         };
-        let (n, ci, co, h, w, k) = (1, 2, 2, 2, 3, 4);
+        let (n, ci, co, h, w, k) = (1, 2, 2, 4, 5, 3);
         let [ho, wo] = p.output_size([h, w], [k, k]).expect("valid");
         let xs: Vec<f32> = (0..n * ci * h * w)
-            .map(|i| ((i * 37 % 11) as f32 - 5.0) / 5.0)
+            .map(|i| ((i * 37 % 11) as f32 - 5.0) / 25.0)
             .collect();
-        let ws: Vec<f32> = (0..ci * co * k * k)
-            .map(|i| ((i * 53 % 13) as f32 - 6.0) / 6.0)
+        let ws: Vec<f32> = (0..co * ci * k * k)
+            .map(|i| ((i * 53 % 13) as f32 - 6.0) / 30.0)
             .collect();
         let ups: Vec<f32> = (0..n * co * ho * wo)
             .map(|i| ((i * 29 % 7) as f32 - 3.0) / 3.0)
@@ -385,9 +386,9 @@ mod tests {
         let t3 =
             |v: &[f32]| Tensor::<3>::from_data(TensorData::new(v.to_vec(), [co, ho, wo]), &device);
         let layer = |xv: &[f32], wv: &[f32], bv: &[f32], act: bool| {
-            host(conv_transpose2d_bias_act(
+            host(conv2d_bias_act(
                 t4(xv, [n, ci, h, w]),
-                t4(wv, [ci, co, k, k]),
+                t4(wv, [co, ci, k, k]),
                 t3(bv),
                 p,
                 act,
@@ -408,10 +409,10 @@ mod tests {
             "the inputs put a pre-activation {margin} from the kink"
         );
         let [_, dx, dw, db] = layer_output_and_gradients(
-            [&t4(&xs, [n, ci, h, w]), &t4(&ws, [ci, co, k, k])],
+            [&t4(&xs, [n, ci, h, w]), &t4(&ws, [co, ci, k, k])],
             &t3(&bs),
             &t4(&ups, [n, co, ho, wo]),
-            |x, w, b| conv_transpose2d_bias_act(x, w, b, p, true),
+            |x, w, b| conv2d_bias_act(x, w, b, p, true),
         );
         let loss = |out: Vec<f32>| -> f64 {
             out.iter()

@@ -38,8 +38,8 @@ use burn::backend::{
 use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
-use super::constants::{LEAKY_RELU_SLOPE, planes_per_task};
-use crate::splat::backend::{HostIo, floats};
+use crate::constants::{LEAKY_RELU_SLOPE, planes_per_task};
+use crate::host::{HostIo, floats};
 
 // The host passes write LeakyReLU as `max(z, slope·z)`, which needs `0 < slope < 1`.
 const _: () = assert!(LEAKY_RELU_SLOPE > 0.0 && LEAKY_RELU_SLOPE < 1.0);
@@ -345,10 +345,10 @@ mod tests {
     use super::*;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    use crate::model::op_check::{check_finite_differences, host, output_and_gradients};
+    use crate::check::{check_finite_differences, host, output_and_gradients};
 
     fn max_rel(a: &[f32], b: &[f32]) -> f32 {
-        crate::model::op_check::max_rel(a, b, 1e-3)
+        crate::check::max_rel(a, b, 1e-3)
     }
 
     /// The reference twin: burn's own ops under autodiff.

@@ -43,9 +43,9 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvTransposeOptions;
 use rayon::prelude::*;
 
-use super::constants::{COLUMN_BLOCK, planes_per_task};
+use crate::constants::{COLUMN_BLOCK, planes_per_task};
 use crate::gemm::{GradientSum, matmul, matmul_into_uninit};
-use crate::splat::backend::{HostIo, floats};
+use crate::host::{HostIo, floats};
 
 /// Stride and padding of a transposed convolution (dilation 1, one group, no output
 /// padding): `H_out = (H - 1)·stride - 2·padding + k_h`, likewise for the width.

@@ -1,6 +1,6 @@
 //! Row-major matrix products on the CPU through the `gemm` crate (the one burn-flex itself
 //! uses), with explicit strides: the column formulations of the CPU convolutions
-//! ([`crate::model::conv_transpose`], [`crate::metrics::vgg_cpu`]) are built on it.
+//! ([`crate::conv_transpose`], [`crate::winograd`]) are built on it.
 
 use std::mem::MaybeUninit;
 
