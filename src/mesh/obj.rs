@@ -5,7 +5,11 @@
 //! in file order, so a line-by-line pass over the file records every face corner's original
 //! indices; it also reports malformed input with its file and line, which `tobj` cannot.
 //! The two readings are checked against each other.
+//!
+//! [`PolygonMesh`] is the line scan's reading alone, for callers that need the faces as
+//! written: polygons before triangulation, each with the group (`g`) it belongs to.
 
+use std::collections::HashMap;
 use std::io::BufReader;
 use std::path::Path;
 
@@ -23,6 +27,71 @@ pub struct UvMesh {
     pub uvs: Vec<[f32; 2]>,
     pub faces: Vec<[u32; 3]>,
     pub uv_faces: Vec<[u32; 3]>,
+}
+
+/// An OBJ file's faces as written: polygons (not triangulated) with their groups.
+///
+/// Read by the line scan [`UvMesh`] checks `tobj` with, so the same input is accepted and
+/// errors name the file and line; every face corner needs a UV index. A file without faces
+/// reads as an empty `polygons`.
+///
+/// # Shapes
+/// - `positions`: `[V]` in file order
+/// - `uvs`: `[T]` in file order; OBJ convention, `v` points up
+/// - `groups`: the group names of the file's `g` lines, each once, in file order
+///   (several names on one line are one name, joined by a space); `""` when faces come
+///   before any `g` line
+/// - `polygons`: `[F]` in file order
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PolygonMesh {
+    pub positions: Vec<[f32; 3]>,
+    pub uvs: Vec<[f32; 2]>,
+    pub groups: Vec<String>,
+    pub polygons: Vec<Polygon>,
+}
+
+/// One face of a [`PolygonMesh`], as written (three or more corners).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Polygon {
+    /// Index into [`PolygonMesh::groups`] of the group the face is in.
+    pub group: usize,
+    /// Corner indices into [`PolygonMesh::positions`], in file order.
+    pub positions: Vec<u32>,
+    /// Corner indices into [`PolygonMesh::uvs`], one per corner.
+    pub uvs: Vec<u32>,
+}
+
+impl PolygonMesh {
+    /// Loads an OBJ file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Parses OBJ text; `name` is used in error messages.
+    pub fn parse(text: &str, name: &str) -> Result<Self> {
+        let scan = scan(text, name)?;
+        let polygons = scan
+            .polygons
+            .into_iter()
+            .map(|f| Polygon {
+                group: f.group,
+                positions: f.corners.iter().map(|c| c.position as u32).collect(),
+                uvs: f.corners.iter().map(|c| c.uv as u32).collect(),
+            })
+            .collect();
+        Ok(PolygonMesh {
+            positions: scan.positions,
+            uvs: scan.uvs,
+            groups: scan.groups,
+            polygons,
+        })
+    }
+
+    /// The name of `polygon`'s group.
+    pub fn group_of(&self, polygon: &Polygon) -> &str {
+        self.groups.get(polygon.group).map_or("", String::as_str)
+    }
 }
 
 /// One face corner as written in the file.
@@ -43,11 +112,12 @@ impl UvMesh {
     pub fn parse(text: &str, name: &str) -> Result<Self> {
         let scan = scan(text, name)?;
         let models = load_tobj(text, name)?;
+        let triangles = scan.triangles();
 
         // tobj's triangles, in file order across its models, must be the scan's triangles.
         let mut tobj_corners = 0usize;
-        let mut faces = Vec::with_capacity(scan.triangles.len());
-        let mut uv_faces = Vec::with_capacity(scan.triangles.len());
+        let mut faces = Vec::with_capacity(triangles.len());
+        let mut uv_faces = Vec::with_capacity(triangles.len());
         let mismatch = |why: String| Error::invalid(name, "f", why);
         for m in &models {
             let mesh = &m.mesh;
@@ -55,7 +125,7 @@ impl UvMesh {
                 return Err(mismatch("faces without UV indices".into()));
             }
             for (k, (&p, &t)) in mesh.indices.iter().zip(&mesh.texcoord_indices).enumerate() {
-                let Some((tri, line)) = scan.triangles.get(tobj_corners / 3) else {
+                let Some((tri, line)) = triangles.get(tobj_corners / 3) else {
                     return Err(mismatch("tobj read more faces than the file has".into()));
                 };
                 let c = tri[tobj_corners % 3];
@@ -79,14 +149,14 @@ impl UvMesh {
                 tobj_corners += 1;
             }
         }
-        if tobj_corners != 3 * scan.triangles.len() {
+        if tobj_corners != 3 * triangles.len() {
             return Err(mismatch(format!(
                 "tobj read {} triangles, the file has {}",
                 tobj_corners / 3,
-                scan.triangles.len()
+                triangles.len()
             )));
         }
-        for (tri, _) in &scan.triangles {
+        for (tri, _) in &triangles {
             faces.push(tri.map(|c| c.position as u32));
             uv_faces.push(tri.map(|c| c.uv as u32));
         }
@@ -146,17 +216,50 @@ fn load_tobj(text: &str, name: &str) -> Result<Vec<tobj::Model>> {
 struct Scan {
     positions: Vec<[f32; 3]>,
     uvs: Vec<[f32; 2]>,
-    /// Fan-triangulated faces with the line each came from.
-    triangles: Vec<([Corner; 3], usize)>,
+    /// Group names (`g`), each once.
+    groups: Vec<String>,
+    /// Faces as written.
+    polygons: Vec<ScannedFace<Corner>>,
 }
 
-/// Reads `v`, `vt`, `f` and `l` lines (and counts `vn` lines), checking syntax, finiteness
-/// and index ranges of everything tobj reads.
+/// A face of the line scan: its corners, the line it came from and its group.
+struct ScannedFace<C> {
+    corners: Vec<C>,
+    line: usize,
+    group: usize,
+}
+
+impl Scan {
+    /// The faces triangulated as fans, with the line each came from.
+    fn triangles(&self) -> Vec<([Corner; 3], usize)> {
+        let mut triangles = Vec::new();
+        for f in &self.polygons {
+            let c = &f.corners;
+            for k in 1..c.len() - 1 {
+                triangles.push(([c[0], c[k], c[k + 1]], f.line));
+            }
+        }
+        triangles
+    }
+}
+
+/// Reads `v`, `vt`, `f`, `l` and `g` lines (and counts `vn` lines), checking syntax,
+/// finiteness and index ranges of everything tobj reads.
 fn scan(text: &str, name: &str) -> Result<Scan> {
     let mut positions = Vec::new();
     let mut uvs = Vec::new();
-    // Corners as written (1-based or negative) and their line.
-    let mut polygons: Vec<(Vec<(i64, i64)>, usize)> = Vec::new();
+    let mut groups: Vec<String> = Vec::new();
+    let mut group_index: HashMap<String, usize> = HashMap::new();
+    // The group of the faces that follow (`None`: before any `g` line).
+    let mut group: Option<usize> = None;
+    let mut index_of = |name: String, groups: &mut Vec<String>| {
+        *group_index.entry(name).or_insert_with_key(|name| {
+            groups.push(name.clone());
+            groups.len() - 1
+        })
+    };
+    // Corners as written (1-based or negative).
+    let mut polygons: Vec<ScannedFace<(i64, i64)>> = Vec::new();
     // Normal indices of faces and the indices of polylines, with their line.
     let mut others: Vec<(Other, i64, usize, &str)> = Vec::new();
     let mut normals = 0usize;
@@ -206,6 +309,10 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
                 }
             }
             "vn" => normals += 1,
+            "g" => {
+                let name = tokens.collect::<Vec<_>>().join(" ");
+                group = Some(index_of(name, &mut groups));
+            }
             // tobj reads the indices of polylines too (and makes faces of those with three
             // or more corners): they are checked like the faces' ones.
             "l" => {
@@ -248,7 +355,15 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
                         format!("a face needs 3 corners, found {}", corners.len()),
                     ));
                 }
-                polygons.push((corners, line));
+                let g = match group {
+                    Some(g) => g,
+                    None => *group.insert(index_of(String::new(), &mut groups)),
+                };
+                polygons.push(ScannedFace {
+                    corners,
+                    line,
+                    group: g,
+                });
             }
             _ => {}
         }
@@ -273,8 +388,13 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
             ));
         }
     }
-    let mut triangles = Vec::new();
-    for (corners, line) in polygons {
+    let mut resolved_polygons = Vec::with_capacity(polygons.len());
+    for ScannedFace {
+        corners,
+        line,
+        group,
+    } in polygons
+    {
         let mut resolved = Vec::with_capacity(corners.len());
         for (p, t) in corners {
             let bad = |what: &str, v: i64, len: usize| {
@@ -295,14 +415,17 @@ fn scan(text: &str, name: &str) -> Result<Scan> {
                 uv: t as usize - 1,
             });
         }
-        for k in 1..resolved.len() - 1 {
-            triangles.push(([resolved[0], resolved[k], resolved[k + 1]], line));
-        }
+        resolved_polygons.push(ScannedFace {
+            corners: resolved,
+            line,
+            group,
+        });
     }
     Ok(Scan {
         positions,
         uvs,
-        triangles,
+        groups,
+        polygons: resolved_polygons,
     })
 }
 
@@ -399,6 +522,51 @@ mod tests {
             let e = UvMesh::parse(text, "m.obj").expect_err(text).to_string();
             assert!(e.contains(at) && e.contains(why), "{text:?}: {e}");
         }
+    }
+
+    /// Polygons keep their corners and groups as written; the same checks as [`UvMesh`].
+    #[test]
+    fn polygons_keep_their_corners_and_groups() {
+        let text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 1\n\
+            f 1/1 2/1 3/2\ng skin  face # the rest of the line\nf 4/1 3/2 2/2 1/1\n\
+            g eye\nf -1/-1 -2/-2 -3/-1\ng skin face\nf 1/1 2/2 4/2\n";
+        let m = PolygonMesh::parse(text, "p.obj").expect("valid OBJ");
+        assert_eq!(m.positions.len(), 4);
+        assert_eq!(m.uvs.len(), 2);
+        assert_eq!(m.groups, vec!["", "skin face", "eye"]);
+        let faces: Vec<(&str, &[u32], &[u32])> = m
+            .polygons
+            .iter()
+            .map(|f| (m.group_of(f), &f.positions[..], &f.uvs[..]))
+            .collect();
+        assert_eq!(
+            faces,
+            vec![
+                ("", &[0, 1, 2][..], &[0, 0, 1][..]),
+                ("skin face", &[3, 2, 1, 0][..], &[0, 1, 1, 0][..]),
+                ("eye", &[3, 2, 1][..], &[1, 0, 1][..]),
+                ("skin face", &[0, 1, 3][..], &[0, 1, 1][..]),
+            ]
+        );
+        // The triangle mesh of the same text is its fans.
+        let t = UvMesh::parse(text, "p.obj").expect("valid OBJ");
+        assert_eq!(
+            t.faces,
+            vec![[0, 1, 2], [3, 2, 1], [3, 1, 0], [3, 2, 1], [0, 1, 3]]
+        );
+        for (text, why) in [
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 4/1\n",
+                "out of range",
+            ),
+            ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "no UV index"),
+        ] {
+            let e = PolygonMesh::parse(text, "p.obj")
+                .expect_err(text)
+                .to_string();
+            assert!(e.contains("p.obj:") && e.contains(why), "{text:?}: {e}");
+        }
+        assert!(PolygonMesh::parse("v 0 0 0\n", "p.obj").is_ok_and(|m| m.polygons.is_empty()));
     }
 
     /// Normal indices (which tobj multiplies unchecked) and polyline indices are checked.
