@@ -655,11 +655,8 @@ fn decoder_outputs_feed_the_lifting_operator() {
 /// the host path, values and gradients, at the decoders' kernel, stride and padding.
 #[test]
 fn conv_transpose_wgpu_matches_host() {
-    use texavatars::cpu::conv_transpose::{ConvTParams, conv_transpose2d};
-    let p = ConvTParams {
-        stride: [2, 2],
-        padding: [1, 1],
-    };
+    use texavatars::cpu::conv::{ConvParams, conv};
+    let p = ConvParams::transposed([2, 2], [1, 1]);
     let run = |device: Device| {
         let x: Vec<f32> = (0..2 * 3 * 5 * 4)
             .map(|i| ((i * 37 % 17) as f32 - 8.0) / 8.0)
@@ -669,7 +666,7 @@ fn conv_transpose_wgpu_matches_host() {
             .collect();
         let x = Tensor::<4>::from_data(TensorData::new(x, [2, 3, 5, 4]), &device).require_grad();
         let w = Tensor::<4>::from_data(TensorData::new(w, [3, 2, 4, 4]), &device).require_grad();
-        let y = conv_transpose2d(x.clone(), w.clone(), p);
+        let y = conv(x.clone(), w.clone(), p);
         assert_eq!(y.dims(), [2, 2, 10, 8]);
         let weights = Tensor::<4>::from_data(
             TensorData::new(
@@ -707,14 +704,11 @@ fn conv_transpose_wgpu_matches_host() {
 /// kinds, at the view encoder's (stride 2) and the appearance decoder's (stride 1) maps.
 #[test]
 fn conv2d_bias_act_wgpu_matches_host() {
-    use texavatars::cpu::conv_bias_act::conv2d_bias_act;
-    use texavatars::cpu::conv2d::Conv2dParams;
+    use texavatars::cpu::conv::ConvParams;
+    use texavatars::cpu::conv_bias_act::conv_bias_act;
     let value = |i: usize, a: usize, m: usize, d: f32| ((i * a % m) as f32 - (m / 2) as f32) / d;
     for stride in [1usize, 2] {
-        let p = Conv2dParams {
-            stride: [stride, stride],
-            padding: [1, 1],
-        };
+        let p = ConvParams::plain([stride, stride], [1, 1]);
         let [ho, wo] = p.output_size([6, 5], [3, 3]).expect("valid");
         let run = |device: Device, untied: bool| {
             let x: Vec<f32> = (0..2 * 3 * 6 * 5).map(|i| value(i, 37, 17, 8.0)).collect();
@@ -734,14 +728,14 @@ fn conv2d_bias_act_wgpu_matches_host() {
                 let b: Vec<f32> = (0..2 * ho * wo).map(|i| value(i, 29, 11, 5.0)).collect();
                 let b =
                     Tensor::<3>::from_data(TensorData::new(b, [2, ho, wo]), &device).require_grad();
-                let y = conv2d_bias_act(x.clone(), w.clone(), b.clone(), p, true);
+                let y = conv_bias_act(x.clone(), w.clone(), b.clone(), p, true);
                 let grads = (y.clone() * up).sum().backward();
                 let db = host(b.grad(&grads).expect("bias grad"));
                 (y, grads, db)
             } else {
                 let b = Tensor::<1>::from_data(TensorData::new(vec![0.3f32, -0.4], [2]), &device)
                     .require_grad();
-                let y = conv2d_bias_act(x.clone(), w.clone(), b.clone(), p, true);
+                let y = conv_bias_act(x.clone(), w.clone(), b.clone(), p, true);
                 let grads = (y.clone() * up).sum().backward();
                 let db = host(b.grad(&grads).expect("bias grad"));
                 (y, grads, db)

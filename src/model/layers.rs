@@ -28,10 +28,8 @@ use burn::tensor::{Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::constants::LEAKY_RELU_SLOPE;
-use texavatars_cpu::conv_bias_act::conv2d_bias_act;
-use texavatars_cpu::conv_t_bias_act::conv_transpose2d_bias_act;
-use texavatars_cpu::conv_transpose::{ConvTParams, conv_transpose2d};
-use texavatars_cpu::conv2d::{Conv2dParams, conv2d};
+use texavatars_cpu::conv::{self as ops, ConvParams, conv};
+use texavatars_cpu::conv_bias_act::conv_bias_act;
 pub use texavatars_cpu::weight_norm::weight_norm;
 use texavatars_cpu::wn_linear::wn_linear;
 
@@ -236,28 +234,48 @@ impl WnLinear {
 // ---------------------------------------------------------------------------------------------
 
 /// What sets a transposed convolution ([`Transposed`]) apart from a plain one ([`Plain`]): the
-/// layout of the weight and the operation.
+/// op's kind, which fixes the layout of the weight and the operation.
 pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
     /// The layer's name, for messages.
     const NAME: &'static str;
 
+    /// The ops' convolution kind.
+    const KIND: ops::ConvKind;
+
     /// The dimension of `v` [_, _, k_h, k_w] that indexes the output channels, in PyTorch's
     /// layouts: 0 for a convolution ([C_out, C_in, k_h, k_w]), 1 for a transposed one
     /// ([C_in, C_out, k_h, k_w]). `fan_in` is the other one times `k_h k_w`.
-    const OUT_DIM: usize;
+    const OUT_DIM: usize = match Self::KIND {
+        ops::ConvKind::Plain => 0,
+        ops::ConvKind::Transposed => 1,
+    };
 
-    /// The layer's operation, before its bias.
+    /// The layer's kind, stride and padding, as the ops take them.
+    fn params(layer: &WnConv<Self>) -> ConvParams {
+        ConvParams {
+            kind: Self::KIND,
+            stride: layer.stride,
+            padding: layer.padding,
+        }
+    }
+
+    /// The layer's operation, before its bias ([`conv`]).
     ///
     /// # Shapes
     /// - `x`: [N, C_in, H, W]
     /// - returns [N, C_out, H_out, W_out]
-    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4>;
+    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
+        conv(x, layer.effective_weight(), Self::params(layer))
+    }
 
     /// `[H_out, W_out]` for an input `[H, W]`, or `None` when the layer leaves no output.
-    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]>;
+    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]> {
+        let [_, _, kh, kw] = layer.v.dims();
+        Self::params(layer).output_size(input, [kh, kw])
+    }
 
     /// The operation, the bias (`[C_out]` or [C_out, H_out, W_out]) and, with `act`, the
-    /// networks' LeakyReLU, as one op.
+    /// networks' LeakyReLU, as one op ([`conv_bias_act`]).
     ///
     /// # Shapes
     /// As [`Self::apply`].
@@ -266,7 +284,9 @@ pub trait ConvKind: Clone + Copy + fmt::Debug + Send + Sync + 'static {
         layer: &WnConv<Self>,
         bias: Tensor<D>,
         act: bool,
-    ) -> Tensor<4>;
+    ) -> Tensor<4> {
+        conv_bias_act(x, layer.effective_weight(), bias, Self::params(layer), act)
+    }
 }
 
 /// A plain convolution: `H_out = (H + 2 p - k) / s + 1`.
@@ -280,70 +300,12 @@ pub struct Transposed;
 
 impl ConvKind for Plain {
     const NAME: &'static str = "WnConv2d";
-    const OUT_DIM: usize = 0;
-
-    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
-        conv2d(x, layer.effective_weight(), Self::params(layer))
-    }
-
-    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]> {
-        let [_, _, kh, kw] = layer.v.dims();
-        Self::params(layer).output_size(input, [kh, kw])
-    }
-
-    /// The fused layer op ([`conv2d_bias_act`]).
-    fn apply_bias_act<const D: usize>(
-        x: Tensor<4>,
-        layer: &WnConv<Self>,
-        bias: Tensor<D>,
-        act: bool,
-    ) -> Tensor<4> {
-        conv2d_bias_act(x, layer.effective_weight(), bias, Self::params(layer), act)
-    }
-}
-
-impl Plain {
-    /// The layer's stride and padding, as the op takes them.
-    fn params(layer: &WnConv<Self>) -> Conv2dParams {
-        Conv2dParams {
-            stride: layer.stride,
-            padding: layer.padding,
-        }
-    }
+    const KIND: ops::ConvKind = ops::ConvKind::Plain;
 }
 
 impl ConvKind for Transposed {
     const NAME: &'static str = "WnConvTranspose2d";
-    const OUT_DIM: usize = 1;
-
-    fn apply(x: Tensor<4>, layer: &WnConv<Self>) -> Tensor<4> {
-        conv_transpose2d(x, layer.effective_weight(), Self::params(layer))
-    }
-
-    fn output_size(layer: &WnConv<Self>, input: [usize; 2]) -> Option<[usize; 2]> {
-        let [_, _, kh, kw] = layer.v.dims();
-        Self::params(layer).output_size(input, [kh, kw])
-    }
-
-    /// The fused layer op ([`conv_transpose2d_bias_act`]).
-    fn apply_bias_act<const D: usize>(
-        x: Tensor<4>,
-        layer: &WnConv<Self>,
-        bias: Tensor<D>,
-        act: bool,
-    ) -> Tensor<4> {
-        conv_transpose2d_bias_act(x, layer.effective_weight(), bias, Self::params(layer), act)
-    }
-}
-
-impl Transposed {
-    /// The layer's stride and padding, as the op takes them.
-    fn params(layer: &WnConv<Self>) -> ConvTParams {
-        ConvTParams {
-            stride: layer.stride,
-            padding: layer.padding,
-        }
-    }
+    const KIND: ops::ConvKind = ops::ConvKind::Transposed;
 }
 
 /// Configuration of a [`WnConv2d`].
@@ -498,8 +460,7 @@ impl<K: ConvKind> WnConv<K> {
     }
 
     /// [`Self::forward`] followed by the networks' LeakyReLU when `act`: with a bias, the
-    /// whole layer is one op ([`conv2d_bias_act`] for a plain convolution,
-    /// [`conv_transpose2d_bias_act`] for a transposed one).
+    /// whole layer is one op ([`conv_bias_act`], for either kind).
     ///
     /// # Shapes
     /// As [`Self::forward`].
