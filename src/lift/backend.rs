@@ -13,7 +13,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, Ops},
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
@@ -23,6 +23,7 @@ use burn_cubecl::CubeBackend;
 
 use crate::kernels::lift::constants::{LOCAL_CHANNELS, OUT_CHANNELS};
 use crate::lift::{LiftParams, cpu, gpu};
+use texavatars_cpu::autodiff;
 use texavatars_cpu::host::{HostIo, floats};
 
 /// Gradients of a lift's two inputs.
@@ -191,15 +192,10 @@ impl<B: Backend + LiftBackend> Backward<B, 2> for LiftBackwardOp {
     type State = (FloatTensor<B>, FloatTensor<B>, LiftParams);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad_out = grads.consume::<B>(&ops.node);
-        let (local, vertices, params) = ops.state;
-        let g = B::lift_backward(local, vertices, grad_out, params);
-        let [local_node, vertices_node] = ops.parents;
-        for (node, grad) in [(local_node, g.local), (vertices_node, g.vertices)] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, grad);
-            }
-        }
+        autodiff::backward::<B, _, 2>(ops, grads, |(local, vertices, params), grad| {
+            let g = B::lift_backward(local, vertices, grad, params);
+            [g.local, g.vertices]
+        });
     }
 }
 
@@ -210,22 +206,10 @@ impl<B: Backend + LiftBackend, C: CheckpointStrategy> LiftBackend for Autodiff<B
         params: LiftParams,
     ) -> FloatTensor<Self> {
         let nodes = [local.node(), vertices.node()];
-        match LiftBackwardOp
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let (local, vertices) = (local.into_primitive(), vertices.into_primitive());
-                let out = B::lift(local.clone(), vertices.clone(), params.clone());
-                prep.finish((local, vertices, params), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::lift(
-                local.into_primitive(),
-                vertices.into_primitive(),
-                params,
-            )),
-        }
+        let inner = (local.into_primitive(), vertices.into_primitive());
+        let run = |(l, v)| B::lift(l, v, params.clone());
+        let keep = |(l, v), _: &FloatTensor<B>| (l, v, params.clone());
+        autodiff::forward::<B, C, _, _, 2>(LiftBackwardOp, nodes, inner, run, keep)
     }
 
     fn lift_backward(

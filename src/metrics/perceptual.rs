@@ -25,7 +25,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, Ops},
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
@@ -40,6 +40,7 @@ use crate::metrics::lpips::channel_constant;
 use crate::metrics::nets::{Features, Net};
 use crate::metrics::vgg_cpu::{Saved, VggCpu};
 use crate::metrics::weights::{self, HostWeights};
+use texavatars_cpu::autodiff;
 use texavatars_cpu::host::{HostIo, floats};
 
 /// VGG16 perceptual loss (frozen backbone, gradients reach the images).
@@ -105,16 +106,19 @@ impl<B: Backend> Backward<B, 2> for VggBackwardOp {
     type State = (Arc<Saved>, CpuVgg, [usize; 3], B::Device);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad = grads.consume::<B>(&ops.node);
-        let g = read_scalar::<B>(grad);
-        let (saved, net, [n, h, w], device) = ops.state;
-        for (k, node) in ops.parents.into_iter().enumerate() {
-            if let Some(node) = node
-                && let Some(d) = net.0.backward(&saved, k, g)
-            {
-                grads.register::<B>(node.id, floats::<B>(d, &[n, 3, h, w], &device));
-            }
-        }
+        autodiff::backward::<B, _, 2>(ops, grads, |(saved, net, [n, h, w], device), grad| {
+            let g = read_scalar::<B>(grad);
+            // An image whose gradient was not kept (untracked) gets zeros, which the graph
+            // drops.
+            [0, 1].map(|k| {
+                let d = net.0.backward(&saved, k, g);
+                floats::<B>(
+                    d.unwrap_or_else(|| vec![0.0; n * 3 * h * w]),
+                    &[n, 3, h, w],
+                    &device,
+                )
+            })
+        });
     }
 }
 
@@ -133,14 +137,17 @@ impl<B: HostIo + PerceptualBackend, C: CheckpointStrategy> PerceptualBackend for
         let (a, b) = (a.into_primitive(), b.into_primitive());
         let device = a.device();
         let dims = nhw::<B>(&a);
-        match VggBackwardOp.prepare::<C>(nodes).compute_bound().stateful() {
-            OpsKind::Tracked(prep) => {
-                let (loss, saved) = net.0.loss(&B::read(a), &B::read(b), dims, keep);
-                let out = floats::<B>(vec![loss as f32], &[1], &device);
-                prep.finish((Arc::new(saved), net, dims, device), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::vgg_l1(ImagePair { a, b }, net)),
-        }
+        let scalar = |loss: f64| floats::<B>(vec![loss as f32], &[1], &device);
+        // Untracked, `keep` is `[false; 2]`: the pass is `B::vgg_l1`'s (nothing saved).
+        let run = |(a, b)| net.0.loss(&B::read(a), &B::read(b), dims, keep);
+        let state = |_, (loss, saved)| {
+            (
+                (Arc::new(saved), net.clone(), dims, device.clone()),
+                scalar(loss),
+            )
+        };
+        let output = |(loss, _)| scalar(loss);
+        autodiff::forward_with::<B, C, _, _, _, 2>(VggBackwardOp, nodes, (a, b), run, state, output)
     }
 }
 

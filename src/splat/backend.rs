@@ -12,7 +12,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, NodeGuard, Ops, OpsKind},
+    ops::{Backward, NodeGuard, Ops},
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
@@ -22,6 +22,7 @@ use burn::tensor::{Shape, Slice, TensorData};
 
 use burn_cubecl::CubeBackend;
 
+use texavatars_cpu::autodiff;
 use texavatars_cpu::host::{HostFloats, HostIo, floats, ints};
 
 use crate::camera::Camera;
@@ -470,25 +471,11 @@ impl<B: Backend + SplatBackend> Backward<B, 5> for SplatBackward {
     type State = (SplatInputs<B>, SplatState<B>, SplatParams);
 
     fn backward(self, ops: Ops<Self::State, 5>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad_out = grads.consume::<B>(&ops.node);
-        let (inputs, state, params) = ops.state;
-        let g = B::splat_backward(inputs, state, grad_out, params);
-        let [means, cov6, colors, opacities, screen] = ops.parents;
-        let screen_grad = screen
-            .as_ref()
-            .map(|_| screen_in_ndc::<B>(&g.screen, &params));
-        for (node, grad) in [
-            (means, Some(g.means)),
-            (cov6, Some(g.cov6)),
-            (colors, Some(g.colors)),
-            (opacities, Some(g.opacities)),
-            (screen, screen_grad),
-        ] {
-            let (Some(node), Some(grad)) = (node, grad) else {
-                continue;
-            };
-            grads.register::<B>(node.id, grad);
-        }
+        autodiff::backward::<B, _, 5>(ops, grads, |(inputs, state, params), grad| {
+            let g = B::splat_backward(inputs, state, grad, params);
+            let screen = screen_in_ndc::<B>(&g.screen, &params);
+            [g.means, g.cov6, g.colors, g.opacities, screen]
+        });
     }
 }
 
@@ -511,20 +498,14 @@ impl<B: Backend + SplatBackend> Backward<B, 2> for SplatPackedBackward {
     type State = (SplatInputs<B>, SplatState<B>, SplatParams);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad_out = grads.consume::<B>(&ops.node);
-        let (inputs, state, params) = ops.state;
-        let g = B::splat_backward(inputs, state, grad_out, params);
-        let [packed, screen] = ops.parents;
-        if let Some(node) = packed {
+        autodiff::backward::<B, _, 2>(ops, grads, |(inputs, state, params), grad| {
+            let g = B::splat_backward(inputs, state, grad, params);
             let n = g.opacities.shape()[0];
             let opacities = B::float_reshape(g.opacities, Shape::from(vec![n, 1]));
             // The order of `crate::lift::constants`: OUT_MEAN, OUT_COV, OUT_RGB, OUT_OPACITY.
-            let grad = B::float_cat(vec![g.means, g.cov6, g.colors, opacities], 1);
-            grads.register::<B>(node.id, grad);
-        }
-        if let Some(node) = screen {
-            grads.register::<B>(node.id, screen_in_ndc::<B>(&g.screen, &params));
-        }
+            let packed = B::float_cat(vec![g.means, g.cov6, g.colors, opacities], 1);
+            [packed, screen_in_ndc::<B>(&g.screen, &params)]
+        });
     }
 }
 
@@ -554,14 +535,12 @@ where
     C: CheckpointStrategy,
     Op: Backward<B, N, State = (SplatInputs<B>, SplatState<B>, SplatParams)>,
 {
-    match op.prepare::<C>(nodes).compute_bound().stateful() {
-        OpsKind::Tracked(prep) => {
-            let state = B::splat_forward(inner.clone(), params);
-            let out = state.out.clone();
-            prep.finish((inner, state, params), out)
-        }
-        OpsKind::UnTracked(prep) => prep.finish(B::splat_forward(inner, params).out),
-    }
+    let run = |i| B::splat_forward(i, params);
+    let keep = |i, state: SplatState<B>| {
+        let out = state.out.clone();
+        ((i, state, params), out)
+    };
+    autodiff::forward_with::<B, C, _, _, _, N>(op, nodes, inner, run, keep, |state| state.out)
 }
 
 impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff<B, C> {

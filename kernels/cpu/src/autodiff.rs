@@ -29,13 +29,33 @@ where
     Op: Backward<B, N>,
     I: Clone,
 {
+    let keep = |i, out: FloatTensor<B>| (keep(i, &out), out);
+    forward_with::<B, C, Op, I, FloatTensor<B>, N>(op, nodes, inner, run, keep, |out| out)
+}
+
+/// [`forward`] for an op whose forward pass yields more than its output (`R`, e.g. a
+/// renderer's intermediate buffers): `keep` splits it into the backward step's state and the
+/// output when a parent is tracked, `output` takes the output alone otherwise.
+pub fn forward_with<B, C, Op, I, R, const N: usize>(
+    op: Op,
+    nodes: [NodeGuard; N],
+    inner: I,
+    run: impl FnOnce(I) -> R,
+    keep: impl FnOnce(I, R) -> (Op::State, FloatTensor<B>),
+    output: impl FnOnce(R) -> FloatTensor<B>,
+) -> FloatTensor<Autodiff<B, C>>
+where
+    B: Backend,
+    C: CheckpointStrategy,
+    Op: Backward<B, N>,
+    I: Clone,
+{
     match op.prepare::<C>(nodes).compute_bound().stateful() {
         OpsKind::Tracked(prep) => {
-            let out = run(inner.clone());
-            let state = keep(inner, &out);
+            let (state, out) = keep(inner.clone(), run(inner));
             prep.finish(state, out)
         }
-        OpsKind::UnTracked(prep) => prep.finish(run(inner)),
+        OpsKind::UnTracked(prep) => prep.finish(output(run(inner))),
     }
 }
 

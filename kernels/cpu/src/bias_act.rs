@@ -29,7 +29,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, Ops},
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
@@ -38,6 +38,7 @@ use burn::backend::{
 use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
+use crate::autodiff;
 use crate::constants::{LEAKY_RELU_SLOPE, planes_per_task};
 use crate::host::{HostIo, floats};
 
@@ -293,15 +294,10 @@ impl<B: Backend + BiasActBackend> Backward<B, 2> for BiasActBackwardOp {
     type State = (FloatTensor<B>, bool, Vec<usize>);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad = grads.consume::<B>(&ops.node);
-        let (out, act, bias_shape) = ops.state;
-        let g = B::bias_act_backward(out, grad, act, bias_shape);
-        let [y_node, bias_node] = ops.parents;
-        for (node, grad) in [(y_node, g.y), (bias_node, g.bias)] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, grad);
-            }
-        }
+        autodiff::backward::<B, _, 2>(ops, grads, |(out, act, bias_shape), grad| {
+            let g = B::bias_act_backward(out, grad, act, bias_shape);
+            [g.y, g.bias]
+        });
     }
 }
 
@@ -313,17 +309,9 @@ impl<B: Backend + BiasActBackend, C: CheckpointStrategy> BiasActBackend for Auto
             bias: bias.into_primitive(),
         };
         let bias_shape = TensorMetadata::shape(&inner.bias).to_vec();
-        match BiasActBackwardOp
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::bias_act(inner, act);
-                prep.finish((out.clone(), act, bias_shape), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::bias_act(inner, act)),
-        }
+        let run = |yb| B::bias_act(yb, act);
+        let keep = |_, out: &FloatTensor<B>| (out.clone(), act, bias_shape);
+        autodiff::forward::<B, C, _, _, 2>(BiasActBackwardOp, nodes, inner, run, keep)
     }
 
     fn bias_act_backward(

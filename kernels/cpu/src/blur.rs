@@ -34,6 +34,7 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
 
+use crate::autodiff;
 use crate::host::{HostIo, floats};
 
 /// The window's side (pixels): SSIM's 11x11 Gaussian window in 3DGS / GaussianAvatars
@@ -191,11 +192,7 @@ impl<B: Backend + BlurBackend> Backward<B, 1> for BlurBackwardOp {
     type State = ();
 
     fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad = grads.consume::<B>(&ops.node);
-        let [x_node] = ops.parents;
-        if let Some(node) = x_node {
-            grads.register::<B>(node.id, B::gaussian_blur(grad));
-        }
+        autodiff::backward::<B, _, 1>(ops, grads, |(), grad| [B::gaussian_blur(grad)]);
     }
 }
 

@@ -34,7 +34,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, Ops},
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
@@ -43,6 +43,7 @@ use burn::backend::{
 use burn::tensor::{Shape, Tensor};
 use rayon::prelude::*;
 
+use crate::autodiff;
 use crate::host::{HostIo, floats};
 
 /// Values of `v` per task (64 K floats, 256 KiB).
@@ -294,18 +295,13 @@ impl WeightNormBackend for Cube {}
 struct WeightNormBackwardOp;
 
 impl<B: Backend + WeightNormBackend> Backward<B, 2> for WeightNormBackwardOp {
-    type State = (FloatTensor<B>, FloatTensor<B>, usize);
+    type State = (VG<B>, usize);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad = grads.consume::<B>(&ops.node);
-        let (v, g, out_dim) = ops.state;
-        let d = B::weight_norm_backward(VG { v, g }, grad, out_dim);
-        let [v_node, g_node] = ops.parents;
-        for (node, grad) in [(v_node, d.v), (g_node, d.g)] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, grad);
-            }
-        }
+        autodiff::backward::<B, _, 2>(ops, grads, |(vg, out_dim), grad| {
+            let d = B::weight_norm_backward(vg, grad, out_dim);
+            [d.v, d.g]
+        });
     }
 }
 
@@ -316,17 +312,9 @@ impl<B: Backend + WeightNormBackend, C: CheckpointStrategy> WeightNormBackend fo
             v: v.into_primitive(),
             g: g.into_primitive(),
         };
-        match WeightNormBackwardOp
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let state = (inner.v.clone(), inner.g.clone(), out_dim);
-                prep.finish(state, B::weight_norm(inner, out_dim))
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::weight_norm(inner, out_dim)),
-        }
+        let run = |vg| B::weight_norm(vg, out_dim);
+        let keep = |vg, _: &FloatTensor<B>| (vg, out_dim);
+        autodiff::forward::<B, C, _, _, 2>(WeightNormBackwardOp, nodes, inner, run, keep)
     }
 
     fn weight_norm_backward(

@@ -34,7 +34,7 @@ use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, Ops},
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
@@ -44,6 +44,7 @@ use burn::tensor::Tensor;
 use rayon::prelude::*;
 
 use super::weight_norm::{self, VG, dot};
+use crate::autodiff;
 use crate::host::{HostIo, floats};
 
 /// Output rows of `v` per task: 256 rows of the `paper` layer's 243 inputs are about 250 KB.
@@ -285,14 +286,10 @@ impl<B: Backend + WnLinearBackend> Backward<B, 3> for WnLinearBackwardOp {
     type State = XVG<B>;
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
-        let grad = grads.consume::<B>(&ops.node);
-        let d = B::wn_linear_backward(ops.state, grad);
-        let [x_node, v_node, g_node] = ops.parents;
-        for (node, grad) in [(x_node, d.x), (v_node, d.v), (g_node, d.g)] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, grad);
-            }
-        }
+        autodiff::backward::<B, _, 3>(ops, grads, |xvg, grad| {
+            let d = B::wn_linear_backward(xvg, grad);
+            [d.x, d.v, d.g]
+        });
     }
 }
 
@@ -304,17 +301,8 @@ impl<B: Backend + WnLinearBackend, C: CheckpointStrategy> WnLinearBackend for Au
             v: v.into_primitive(),
             g: g.into_primitive(),
         };
-        match WnLinearBackwardOp
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let y = B::wn_linear(inner.clone());
-                prep.finish(inner, y)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::wn_linear(inner)),
-        }
+        let keep = |xvg, _: &FloatTensor<B>| xvg;
+        autodiff::forward::<B, C, _, _, 3>(WnLinearBackwardOp, nodes, inner, B::wn_linear, keep)
     }
 
     fn wn_linear_backward(XVG { x, v, g }: XVG<Self>, grad: FloatTensor<Self>) -> XVG<Self> {
