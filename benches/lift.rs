@@ -13,8 +13,8 @@ use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use criterion::{Criterion, criterion_group, criterion_main};
 use texavatars::lift::{self, LiftMode, LiftParams, Topology};
 use texavatars::mesh::UvMesh;
-use texavatars::splat::demo::Pcg;
 use texavatars::texel::FrameKind;
+use texavatars::util::rng::Pcg;
 
 /// The allocator the `texavatars` binary uses (see `src/main.rs`).
 #[global_allocator]

@@ -62,7 +62,7 @@ impl Error {
     /// otherwise.
     pub fn exit_code(&self) -> u8 {
         match self {
-            Error::Stopped { signal, .. } => crate::train::signals::exit_code(*signal),
+            Error::Stopped { signal, .. } => exit_code(*signal),
             _ => 1,
         }
     }
@@ -70,3 +70,8 @@ impl Error {
 
 /// Result with [`Error`].
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// The exit status of a process stopped by `signal` (the shell's convention).
+pub fn exit_code(signal: usize) -> u8 {
+    (128 + signal.min(127)) as u8
+}

@@ -37,6 +37,7 @@ pub mod eval;
 #[cfg(feature = "fusion")]
 pub mod fusion;
 pub mod gaussianavatars;
+pub mod gpu;
 pub mod head;
 pub mod io;
 pub mod lift;
@@ -49,6 +50,7 @@ pub mod study;
 pub mod synth;
 pub mod texel;
 pub mod train;
+pub mod util;
 pub mod view;
 
 pub use burn;

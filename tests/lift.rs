@@ -9,8 +9,8 @@ use std::sync::Arc;
 use burn::tensor::{Device, Tensor, TensorData};
 use texavatars::lift::{self, LiftMode, LiftParams, Lifted, Topology};
 use texavatars::mesh::UvMesh;
-use texavatars::splat::demo::Pcg;
 use texavatars::texel::FrameKind;
+use texavatars::util::rng::Pcg;
 
 const COMBOS: [(LiftMode, FrameKind); 4] = [
     (LiftMode::Global, FrameKind::Jacobian),

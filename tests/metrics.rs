@@ -13,7 +13,7 @@ use texavatars::io::image::{read_rgb, write_png};
 use texavatars::io::npy::Array;
 use texavatars::metrics::weights::{self, HostWeights};
 use texavatars::metrics::{self, Lpips, Net, VggPerceptual, image_tensor, to_host};
-use texavatars::splat::demo::Pcg;
+use texavatars::util::rng::Pcg;
 
 /// burn-flex: the networks run much faster on it than on burn-ndarray (whose conv2d is slow
 /// here); [`psnr_and_ssim_match_fixtures`] covers ndarray too.

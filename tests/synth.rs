@@ -277,7 +277,7 @@ fn wrinkles_change_shading_only_and_eta_encodes_them() {
     // Eta without noise is the projection of the activations.
     // Eta without noise is a deterministic, bounded code that moves with the activations
     // at a fixed expression.
-    let mut rng = texavatars::splat::demo::Pcg::new(1);
+    let mut rng = texavatars::util::rng::Pcg::new(1);
     let e = app.eta(&act, &pose.expr, 0.0, &mut rng);
     assert_eq!(e, app.eta(&act, &pose.expr, 0.0, &mut rng));
     assert!(e.iter().all(|x| x.abs() <= 1.0));

@@ -18,12 +18,13 @@ use std::sync::{Arc, OnceLock};
 use burn::data::dataloader::DataLoader;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Device, Gradients, Tensor};
+use texavatars::data::refined::{self, RefinedParams};
 use texavatars::data::{HeadBatcher, HeadDataset, Split};
 use texavatars::device::BackendKind;
 use texavatars::head::HeadAsset;
 use texavatars::model::{Ablations, Avatar, NetConfig};
 use texavatars::synth::{self, SynthConfig};
-use texavatars::train::refine::{self, RefinedParams};
+use texavatars::train::refine;
 use texavatars::train::{
     self, AvatarTraining, FrameLoader, IterationRecord, LossWeights, Objective, Schedule,
     TrainBatch, TrainConfig, TrainOptions, files, latest_checkpoint,
@@ -295,7 +296,7 @@ fn each_ablation_builds_and_runs_one_step() {
         assert_eq!(r.avatar.lift.frame, ablations.frame_kind(), "{name}");
         assert_eq!(r.avatar.net.zero_eta, !ablations.eta, "{name}");
         assert_eq!(
-            out.join(refine::REFINED_NPZ).is_file(),
+            out.join(refined::REFINED_NPZ).is_file(),
             ablations.flame_refinement,
             "{name}"
         );

@@ -70,7 +70,7 @@ pub fn run(cmd: ExportCommand) -> anyhow::Result<()> {
 }
 
 fn flame_param_command(a: FlameParamArgs) -> anyhow::Result<()> {
-    use crate::train::refine::{REFINED_NPZ, RefinedParams};
+    use crate::data::refined::{REFINED_NPZ, RefinedParams};
     let Some(refined) = RefinedParams::load(&a.run)? else {
         return Err(crate::error::Error::invalid(
             a.run.display().to_string(),

@@ -119,7 +119,7 @@ pub struct HeadDataset {
     identity: Arc<Identity>,
     cache: Option<Cache>,
     /// Refined parameters that replace the tracked ones of their timesteps.
-    refined: Option<Arc<crate::train::refine::RefinedParams>>,
+    refined: Option<Arc<crate::data::refined::RefinedParams>>,
     /// Set once a missing mask file has been reported.
     mask_warned: std::sync::atomic::AtomicBool,
 }
@@ -289,7 +289,7 @@ impl HeadDataset {
     /// the tracked ones (its shape and static offsets included); the others keep theirs.
     /// Evaluation uses it for a split that shares timesteps with training (novel view), as
     /// GaussianAvatars' `render.py` does with the `flame_param.npz` of a trained model.
-    pub fn with_refined(mut self, refined: Arc<crate::train::refine::RefinedParams>) -> Self {
+    pub fn with_refined(mut self, refined: Arc<crate::data::refined::RefinedParams>) -> Self {
         self.refined = Some(refined);
         if let Some(cache) = &self.cache {
             lock(cache).clear();

@@ -3,6 +3,7 @@
 pub mod batch;
 pub mod dataset;
 pub mod identity;
+pub mod refined;
 pub mod split;
 pub mod validate;
 pub mod vhap;

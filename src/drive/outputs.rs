@@ -16,7 +16,8 @@
 
 use std::path::Path;
 
-use crate::error::{Error, Result};
+use crate::error::Result;
+use crate::util::files::clear_matching;
 
 /// Whether `s` is a frame number as the commands write them (`{i:05}`: five or more digits).
 fn is_frame_number(s: &str) -> bool {
@@ -61,31 +62,6 @@ pub fn export_owns(name: &str) -> bool {
     [".ply", "_camera.json", "_render.png", "_render.npy"]
         .iter()
         .any(|suffix| n.strip_suffix(suffix).is_some_and(is_frame_number))
-}
-
-/// Removes the plain files (and links) directly in `dir` whose names `owns` accepts; a
-/// missing folder has none. Returns how many were removed.
-pub fn clear_matching(dir: &Path, owns: &dyn Fn(&str) -> bool) -> Result<usize> {
-    let entries = match std::fs::read_dir(dir) {
-        Ok(e) => e,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
-        Err(e) => return Err(Error::io(dir, e)),
-    };
-    let mut n = 0;
-    for entry in entries {
-        let entry = entry.map_err(|e| Error::io(dir, e))?;
-        let path = entry.path();
-        let Some(name) = entry.file_name().to_str().map(str::to_owned) else {
-            continue;
-        };
-        let ty = entry.file_type().map_err(|e| Error::io(&path, e))?;
-        if ty.is_dir() || !owns(&name) {
-            continue;
-        }
-        std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?;
-        n += 1;
-    }
-    Ok(n)
 }
 
 /// Removes an earlier `render`'s files from `out` (see the module docs); returns how many.

@@ -158,7 +158,7 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
     let refined = if opts.tracked {
         None
     } else {
-        crate::train::refine::RefinedParams::load(&opts.run)?.map(Arc::new)
+        crate::data::refined::RefinedParams::load(&opts.run)?.map(Arc::new)
     };
     let mut splits: Vec<(String, PathBuf)> = Vec::new();
     for &split in &opts.splits {

@@ -32,8 +32,8 @@
 use glam::{Mat3, Quat, Vec3};
 
 use super::binding::unit;
-use crate::splat::demo::Pcg;
 use crate::splat::ply::PlyGaussians;
+use crate::util::rng::Pcg;
 
 /// Split children per parent (`densify_and_split(..., N=2)`).
 pub const SPLIT_CHILDREN: usize = 2;

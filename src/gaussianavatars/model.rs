@@ -86,7 +86,7 @@ impl GaModel {
     /// [0, 1/255) (`np.random.random / 255`, a near-grey start), higher bands 0.
     pub fn init(num_faces: usize, sh_degree: usize, seed: u64, device: &Device) -> Result<Self> {
         let k = (sh_degree + 1) * (sh_degree + 1);
-        let mut rng = crate::splat::demo::Pcg::new(seed);
+        let mut rng = crate::util::rng::Pcg::new(seed);
         let mut sh = vec![0.0f32; num_faces * k * 3];
         for g in sh.chunks_mut(k * 3) {
             for c in &mut g[..3] {
@@ -221,7 +221,7 @@ impl GaModel {
 mod tests {
     use super::*;
     use crate::gaussianavatars::binding::{face_frames as host_frames, to_world};
-    use crate::splat::demo::Pcg;
+    use crate::util::rng::Pcg;
 
     fn host(t: Tensor<2>) -> Vec<f32> {
         t.into_data().iter::<f32>().collect()

@@ -31,9 +31,9 @@ use std::sync::{Arc, Mutex};
 
 use burn_cubecl::CubeDevice;
 
+use crate::gpu::{Ctx, arg};
 use crate::lift::tables::{Csr, GpuTables};
 use crate::lift::{LiftMode, LiftParams};
-use crate::splat::gpu::{Ctx, arg};
 use crate::texel::FrameKind;
 
 /// A CSR list on the device.

@@ -20,15 +20,14 @@
 //! Integer outputs use `DType::I32` (the cube backends' default int dtype); their values are
 //! non-negative and written as `u32` bit patterns, which agree with `i32` below `2^31`.
 
-use burn::tensor::{DType, Shape};
+use burn::tensor::DType;
 use burn_cubecl::CubeDevice;
 use burn_cubecl::cubecl::client::Client;
 use burn_cubecl::cubecl::features::AtomicUsage;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::server::Handle;
-use burn_cubecl::cubecl::{CubeCount, CubeDim, calculate_cube_count_elemwise};
-use burn_cubecl::kernel::{cast, into_contiguous};
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::cubecl::{CubeCount, CubeDim};
+use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::tensor::CubeTensor;
 use texavatars_kernels::splat::bwd::project::project_backward;
 use texavatars_kernels::splat::bwd::rasterize::rasterize_backward;
@@ -36,7 +35,6 @@ use texavatars_kernels::splat::bwd::sum_slots::sum_slots;
 use texavatars_kernels::splat::camera::{CAMERA_LEN, pack_camera};
 use texavatars_kernels::splat::constants::{GRAD2D_STRIDE, PROJECTED_STRIDE, TILE_SIZE};
 use texavatars_kernels::splat::emit_intersections::emit_intersections;
-use texavatars_kernels::splat::fill::fill_u32;
 use texavatars_kernels::splat::gather::gather_u32;
 use texavatars_kernels::splat::iota::iota_u32;
 use texavatars_kernels::splat::project::{KEY_MAX, KEY_MIN, KEY_STATS_LEN, TOTAL_TILES, project};
@@ -52,6 +50,8 @@ use texavatars_kernels::splat::scan::{SCAN_BLOCK, SCAN_THREADS};
 use texavatars_kernels::splat::tile_ranges::segment_ranges;
 
 use crate::camera::Camera;
+pub use crate::gpu::max_binding_bytes;
+use crate::gpu::{Ctx, arg};
 
 /// Blocking reads from the device issued by this module since the process started.
 static HOST_READS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
@@ -62,9 +62,6 @@ static HOST_READS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::
 pub fn host_reads() -> u64 {
     HOST_READS.load(std::sync::atomic::Ordering::Relaxed)
 }
-
-/// Threads per workgroup of the one-thread-per-element kernels.
-const ELEMENTWISE_THREADS: u32 = 256;
 
 /// Result of [`forward`]: the image and everything [`backward`] needs.
 #[derive(Clone, Debug)]
@@ -177,13 +174,6 @@ pub struct SceneSize {
     pub intersections: Option<usize>,
     /// Whether the backward keeps per-intersection gradient slots (no float atomics).
     pub slots: bool,
-}
-
-/// The largest storage buffer one kernel may bind on `client`'s adapter, in bytes: wgpu's
-/// `max_storage_buffer_binding_size`, capped by `max_buffer_size` (cubecl-wgpu reports
-/// their minimum as the largest allocation).
-pub fn max_binding_bytes(client: &Client) -> u64 {
-    client.properties().memory.max_page_size
 }
 
 /// Checks every scene-sized buffer of a splat pass over `scene` against `limit` bytes (see
@@ -678,12 +668,6 @@ fn bit_length(max_value: u32) -> u32 {
     u32::BITS - max_value.leading_zeros()
 }
 
-/// A kernel argument over the first `len` elements of `handle` (at least one).
-pub(crate) fn arg(handle: &Handle, len: usize) -> BufferArg {
-    // SAFETY: callers pass the element count the buffer was allocated with (or fewer).
-    unsafe { BufferArg::from_raw_parts(handle.clone(), len.max(1)) }
-}
-
 /// Image and tile grid sizes of a camera.
 struct Frame {
     width: u32,
@@ -725,41 +709,7 @@ impl Frame {
     }
 }
 
-/// The client and device every buffer of one pass lives on, with buffer helpers.
-pub(crate) struct Ctx {
-    pub(crate) client: Client,
-    pub(crate) device: CubeDevice,
-}
-
 impl Ctx {
-    pub(crate) fn new(reference: &CubeTensor) -> Self {
-        Self {
-            client: reference.client.clone(),
-            device: reference.device.clone(),
-        }
-    }
-
-    fn on(device: &CubeDevice) -> Self {
-        Self {
-            client: device.client(),
-            device: device.clone(),
-        }
-    }
-
-    /// `tensor` as a contiguous `f32` tensor on this context's device.
-    pub(crate) fn float_input(&self, tensor: CubeTensor) -> CubeTensor {
-        assert!(
-            tensor.device == self.device,
-            "all splat inputs must be on the same device"
-        );
-        let tensor = if tensor.dtype == DType::F32 {
-            tensor
-        } else {
-            cast(tensor, DType::F32)
-        };
-        into_contiguous(tensor)
-    }
-
     /// The camera buffer (see `texavatars_kernels::splat::camera`).
     fn camera(&self, camera: &Camera, background: [f32; 3]) -> Handle {
         let packed = pack_camera(
@@ -778,44 +728,6 @@ impl Ctx {
         } else {
             handle.clone()
         }
-    }
-
-    /// An uninitialised buffer of `len` (at least one) 32-bit words.
-    ///
-    /// # Panics
-    /// When the buffer exceeds the adapter's largest storage binding ([`max_binding_bytes`]):
-    /// the last guard for buffers no scene check covers (the lifting's), with a message
-    /// instead of a panic inside wgpu.
-    pub(crate) fn empty(&self, len: usize) -> Handle {
-        let bytes = len.max(1) * size_of::<u32>();
-        let limit = max_binding_bytes(&self.client);
-        assert!(
-            bytes as u64 <= limit,
-            "a GPU buffer of {len} 32-bit words ({bytes} bytes) exceeds this adapter's largest \
-             storage buffer binding ({limit} bytes): use fewer Gaussians (a smaller texel \
-             resolution) or a smaller image, or an adapter with a larger \
-             max_storage_buffer_binding_size"
-        );
-        self.client.empty(bytes)
-    }
-
-    /// A zero-filled buffer of `len` (at least one) 32-bit words (`0u32` and `0.0f32`).
-    pub(crate) fn zeros(&self, len: usize) -> Handle {
-        let handle = self.empty(len);
-        let len = len.max(1);
-        let (count, dim) = self.elementwise(len);
-        // SAFETY: one thread per element, bounds-checked against `len`.
-        unsafe {
-            fill_u32::launch_unchecked(
-                &self.client,
-                count,
-                dim,
-                arg(&handle, len),
-                0u32,
-                len as u32,
-            );
-        }
-        handle
     }
 
     /// `[0, 1, ..., len - 1]`.
@@ -994,56 +906,6 @@ impl Ctx {
             .read_one(handle.clone())
             .expect("reading a value back from the device failed");
         u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])
-    }
-
-    /// Launch configuration for one thread per element.
-    pub(crate) fn elementwise(&self, len: usize) -> (CubeCount, CubeDim) {
-        let dim = CubeDim::new_1d(ELEMENTWISE_THREADS);
-        let count = calculate_cube_count_elemwise(&self.client, len.max(1), dim);
-        (count, dim)
-    }
-
-    /// Launch configuration for `blocks` workgroups of `threads` threads (the kernels read
-    /// their block from the linear cube position and skip positions past `blocks`).
-    fn blocks(&self, blocks: usize, threads: u32) -> (CubeCount, CubeDim) {
-        let dim = CubeDim::new_1d(threads);
-        let count =
-            calculate_cube_count_elemwise(&self.client, blocks.max(1) * threads as usize, dim);
-        (count, dim)
-    }
-
-    /// Wraps a contiguous buffer as a tensor.
-    pub(crate) fn tensor<const D: usize>(
-        &self,
-        handle: Handle,
-        shape: [usize; D],
-        dtype: DType,
-    ) -> CubeTensor {
-        if shape.iter().product::<usize>() == 0 {
-            return empty_device_dtype(
-                self.client.clone(),
-                self.device.clone(),
-                Shape::new(shape),
-                dtype,
-            );
-        }
-        CubeTensor::new_contiguous(
-            self.client.clone(),
-            self.device.clone(),
-            Shape::new(shape),
-            handle,
-            dtype,
-        )
-    }
-
-    /// An empty (zero-element) `f32` tensor.
-    fn empty_tensor<const D: usize>(&self, shape: [usize; D]) -> CubeTensor {
-        empty_device_dtype(
-            self.client.clone(),
-            self.device.clone(),
-            Shape::new(shape),
-            DType::F32,
-        )
     }
 }
 

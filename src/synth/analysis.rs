@@ -25,9 +25,9 @@ use crate::data::vhap::eta_path;
 use crate::error::{Error, Result};
 use crate::head::{HeadAsset, HeadPose};
 use crate::io::npz::Npz;
-use crate::splat::demo::Pcg;
 use crate::synth::appearance::{WRINKLE_NAMES, WRINKLES};
 use crate::synth::{TRUTH_DIR, tracking};
+use crate::util::rng::Pcg;
 
 /// Folds of the outer cross-validation.
 pub const FOLDS: usize = 5;

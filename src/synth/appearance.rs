@@ -37,10 +37,10 @@ use glam::Vec3;
 
 use crate::error::Result;
 use crate::head::{HeadAsset, HeadPose, lbs};
-use crate::splat::demo::Pcg;
 use crate::synth::subject::Subject;
 use crate::synth::tension::Tension;
 use crate::texel::layout::UvLayout;
+use crate::util::rng::Pcg;
 
 /// Number of wrinkle kinds.
 pub const WRINKLES: usize = 7;

@@ -66,7 +66,7 @@ use crate::data::vhap::{FrameRecord, eta_path, save_transforms};
 use crate::error::{Error, Result};
 use crate::head::{HeadAsset, HeadPose, lbs};
 use crate::io;
-use crate::splat::demo::Pcg;
+use crate::util::rng::Pcg;
 
 pub use config::SynthConfig;
 pub use sequences::{Role, Sequence};
@@ -270,7 +270,7 @@ fn frame_file(name: &str, ext: &str, with_camera: bool) -> bool {
 /// Removes the files a run writes into `out` (see the module docs) that `pick` also
 /// accepts; returns how many. Sub-folders and files of other names are left alone.
 fn clear_owned(out: &Path, pick: &dyn Fn(&str) -> bool) -> Result<usize> {
-    use crate::drive::outputs::clear_matching;
+    use crate::util::files::clear_matching;
     let base = |n: &str| n.strip_suffix(".partial").unwrap_or(n).to_string();
     let mut n = 0;
     n += clear_matching(&out.join("synth"), &|f| {

@@ -11,8 +11,8 @@
 use std::f32::consts::PI;
 
 use crate::head::{HeadMeta, HeadModel, HeadPose};
-use crate::splat::demo::Pcg;
 use crate::synth::config::SynthConfig;
+use crate::util::rng::Pcg;
 
 /// Training families: (sequence name, ARKit units).
 pub const TRAIN_FAMILIES: [(&str, &[&str]); 10] = [

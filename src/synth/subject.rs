@@ -9,8 +9,8 @@
 //! ships one folder per subject.
 
 use crate::head::{HeadModel, HeadPose};
-use crate::splat::demo::Pcg;
 use crate::synth::appearance::WRINKLES;
+use crate::util::rng::Pcg;
 
 /// Shape components a subject varies (the leading ones of the basis; FLAME orders them by
 /// variance, the embedded head has 14).

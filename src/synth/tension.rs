@@ -30,9 +30,9 @@
 
 use std::f32::consts::PI;
 
-use crate::splat::demo::Pcg;
 use crate::synth::appearance::WRINKLES;
 use crate::synth::sequences::bump;
+use crate::util::rng::Pcg;
 
 /// Muscle group of each wrinkle kind (upper face 0, eyes 1, lower face 2), in
 /// [`crate::synth::appearance::WRINKLE_NAMES`] order.

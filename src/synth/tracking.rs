@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::head::{HeadModel, HeadPose, lbs};
-use crate::splat::demo::Pcg;
+use crate::util::rng::Pcg;
 
 /// Noise levels of the tracked parameters (standard deviations per value).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -6,9 +6,9 @@ use std::path::{Path, PathBuf};
 
 use burn::train::checkpoint::Checkpoint;
 
+use super::lock;
 use super::options::TrainOptions;
 use super::stop::IterationRecord;
-use super::{lock, refine};
 use crate::error::{Error, Result};
 
 /// File names inside the output folder.
@@ -29,8 +29,8 @@ pub mod files {
 /// What `train` writes into its output folder, removed by [`TrainOptions::force`].
 pub const OWNED: [&str; 10] = [
     files::CONFIG,
-    refine::REFINED_NPZ,
-    refine::REFINED_INDEX,
+    crate::data::refined::REFINED_NPZ,
+    crate::data::refined::REFINED_INDEX,
     files::AVATAR_CONFIG,
     files::AVATAR,
     files::CHECKPOINTS,

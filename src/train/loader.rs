@@ -25,7 +25,7 @@ use burn::tensor::Device;
 
 use super::stop::{IterationRecord, StopControl};
 use crate::data::{HeadBatch, HeadBatcher, HeadDataset};
-use crate::splat::demo::Pcg;
+use crate::util::rng::Pcg;
 
 /// One step's input: a batch and the global (0-based) iteration it belongs to.
 #[derive(Clone, Debug)]

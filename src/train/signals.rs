@@ -12,6 +12,7 @@
 
 use super::stop::StopControl;
 use crate::error::Result;
+use crate::error::exit_code;
 
 /// The signals that stop a run: SIGINT (2) and SIGTERM (15).
 #[cfg(unix)]
@@ -24,11 +25,6 @@ pub fn name(signal: usize) -> String {
         15 => "SIGTERM".into(),
         s => format!("signal {s}"),
     }
-}
-
-/// The exit status of a process stopped by `signal` (the shell's convention).
-pub fn exit_code(signal: usize) -> u8 {
-    (128 + signal.min(127)) as u8
 }
 
 /// Registered handlers; dropping the guard unregisters them.

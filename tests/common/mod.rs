@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use burn::tensor::{Device, Tensor, TensorData};
 use texavatars::camera::{Camera, CameraFile};
 use texavatars::io::npy;
-use texavatars::splat::demo::Pcg;
 use texavatars::splat::{Gaussians, Rendered, SplatParams};
+use texavatars::util::rng::Pcg;
 
 /// A scene in host memory with its optional expected outputs.
 #[derive(Clone, Debug)]

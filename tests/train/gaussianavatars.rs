@@ -93,7 +93,7 @@ fn loss_goes_down(backend: BackendKind, iterations: usize, name: &str) {
     assert!(r.output.join("flame_param.npz").is_file());
     assert!(out.join(files::IDENTITY).is_file());
     // FLAME refinement is on by default: the refined parameters moved from the tracked ones.
-    let refined = texavatars::train::refine::RefinedParams::load(&out)
+    let refined = texavatars::data::refined::RefinedParams::load(&out)
         .unwrap()
         .expect("refined parameters");
     let train = texavatars::data::HeadDataset::open(

@@ -15,7 +15,7 @@ use crate::gaussianavatars::density::{self, Stats};
 use crate::gaussianavatars::folder::write_point_cloud;
 use crate::gaussianavatars::model::GaModel;
 use crate::head::HeadAsset;
-use crate::train::refine::{self, FlameRefinement, Timesteps};
+use crate::train::refine::{FlameRefinement, Timesteps};
 use crate::train::{Launch, Schedule, TrainOptions, files, open_frames, prepare_folder};
 
 /// Files of a GaussianAvatars run in its output folder.
@@ -29,8 +29,8 @@ pub mod ga_files {
 /// What a GaussianAvatars run writes into its folder, removed by `--force`.
 pub const OWNED: [&str; 9] = [
     ga_files::CONFIG,
-    refine::REFINED_NPZ,
-    refine::REFINED_INDEX,
+    crate::data::refined::REFINED_NPZ,
+    crate::data::refined::REFINED_INDEX,
     ga_files::POINT_CLOUD_DIR,
     files::CHECKPOINTS,
     files::IDENTITY,

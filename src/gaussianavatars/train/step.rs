@@ -18,12 +18,12 @@ use crate::gaussianavatars::losses::{position_loss, scale_loss};
 use crate::gaussianavatars::model::GaModel;
 use crate::metrics::{self, psnr};
 use crate::splat::cpu::{self, ProjCamera};
-use crate::splat::demo::Pcg;
 use crate::splat::{self, Gaussians, SplatParams};
 use crate::train::loss::LossTerms;
 use crate::train::refine::FlameRefinement;
 use crate::train::step::guarded;
 use crate::train::{StepOutput, TrainBatch};
+use crate::util::rng::Pcg;
 
 /// What burn's learner trains: the Gaussians and their densification statistics.
 #[derive(Module, Debug)]

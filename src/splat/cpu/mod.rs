@@ -562,7 +562,7 @@ pub fn backward(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::splat::demo::Pcg;
+    use crate::util::rng::Pcg;
 
     /// Random splats around a 16x16 tile at (32, 16), some partly outside it.
     fn splats(n: usize, seed: u64) -> Vec<Option<Projection>> {
