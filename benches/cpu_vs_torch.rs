@@ -38,7 +38,7 @@ use texavatars::head::HeadAsset;
 use texavatars::io::npy::Array;
 use texavatars::metrics::weights::HostWeights;
 use texavatars::metrics::{Net, VggPerceptual};
-use texavatars::model::NetConfig;
+use texavatars::models::texavatars::NetConfig;
 use texavatars::synth::{self, SynthConfig};
 use texavatars::train::{
     AvatarTraining, LossWeights, Objective, TrainBatch, TrainConfig, optimizer,
@@ -305,7 +305,7 @@ fn wanted(name: &str) -> bool {
 
 fn main() {
     texavatars::alloc::keep_freed_pages();
-    // As the `texavatars` binary does (`cli::run`, src/threads.rs).
+    // As the `texavatars` binary does (`cli::run`, kernels/cpu/src/threads.rs).
     texavatars::cpu::threads::on_pool(run);
 }
 

@@ -14,7 +14,7 @@ use std::time::Duration;
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
 use criterion::{Criterion, criterion_group, criterion_main};
 use texavatars::camera::Camera;
-use texavatars::model::NetConfig;
+use texavatars::models::texavatars::NetConfig;
 
 /// The allocator the `texavatars` binary uses (see `src/main.rs`).
 #[global_allocator]

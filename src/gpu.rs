@@ -1,5 +1,5 @@
 //! Launching the CubeCL kernels on burn's cubecl backend: the client and device of a pass
-//! ([`Ctx`]) with its buffer and launch helpers, and kernel arguments over buffers ([`arg`]).
+//! (`Ctx`) with its buffer and launch helpers, and kernel arguments over buffers (`arg`).
 //! The splat ([`crate::splat`]) and the lifting ([`crate::lift`]) launch through them.
 
 use burn::tensor::{DType, Shape};

@@ -6,23 +6,41 @@
 //!    subject) → [`head`] (FLAME-compatible model, skinning, VHAP's teeth, the default head)
 //!    → [`synth`] (the synthetic benchmark, written in the same export format) → [`mesh`]
 //!    (OBJ with UVs) and [`camera`] (one pinhole convention).
-//! 2. The avatar: [`texel`] (UV layout maps, sample grid, per-face frames) → [`model`] (the
-//!    networks: condition and camera to local texel attributes) → [`lift`] (local texel
-//!    attributes to 3D Gaussians) → [`splat`] (the differentiable Gaussian rasterizer).
-//!    [`gaussianavatars`], a sibling of [`model`], is the GaussianAvatars baseline (Gaussians
-//!    bound to mesh triangles); both models offer [`drivable::Drivable`].
+//! 2. The avatar: [`texel`] (UV layout maps, sample grid, per-face frames) → [`lift`] (local
+//!    texel attributes to 3D Gaussians) → [`splat`] (the differentiable Gaussian
+//!    rasterizer) → [`models`] (TexAvatars' networks and GaussianAvatars' bound Gaussians,
+//!    side by side, both offering [`models::Drivable`]).
 //! 3. Learning and judging: [`metrics`] (losses and image metrics, with the pretrained VGG16
-//!    / AlexNet weights) → [`train`] (the objective and training through burn's learner) →
-//!    [`eval`] (the paper's evaluation protocol, tables, panels, curves).
+//!    / AlexNet weights) → [`train`] (both models' objectives and training through burn's
+//!    learner) → [`eval`] (the paper's evaluation protocol, tables, panels, curves).
 //! 4. Use: [`drive`] (motions, cameras, rendering, PLY export, frame-rate benchmark),
-//!    [`view`] (driving an avatar live in a web browser) and [`demo`] (the whole pipeline
-//!    as one command).
+//!    [`view`] (driving an avatar live in a web browser), [`study`] (ablations over subjects
+//!    and seeds) and [`demo`] (the whole pipeline as one command).
 //!
-//! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`threads`] (commands
-//! run on rayon's pool), [`device`] (backend choice), `fusion` (the custom ops on burn's
-//! kernel-fusion backend), [`io`] (npy / npz / PNG / pickle files) and [`error`] (errors
-//! that name the file and field). The GPU kernels are the `texavatars-kernels` crate
-//! ([`kernels`]).
+//! Around them: [`cli`] (the `texavatars` commands, thin wrappers), [`device`] (backend
+//! choice), `fusion` (the custom ops on burn's kernel-fusion backend), [`gpu`] (launching
+//! the CubeCL kernels), [`io`] (npy / npz / PNG / pickle files), [`util`] (random numbers,
+//! file helpers), [`limits`] (memory and size checks) and [`error`] (errors that name the
+//! file and field). The host ops (fused layers, gemm, Winograd, pooling, blur, Adam, host
+//! I/O, rayon's pool) are the `texavatars-cpu` crate ([`cpu`]); the GPU kernels are the
+//! `texavatars-kernels` crate ([`kernels`]).
+//!
+//! # Layers
+//!
+//! Lowest first. A module uses modules of lower layers only, never one of its own layer or a
+//! higher one (`tests/layers.rs` checks every `crate::` path in `src/`):
+//!
+//! 1. [`error`], [`cpu`], [`kernels`], [`alloc`], [`device`], `fusion`, [`gpu`]
+//! 2. [`io`], [`limits`], [`util`], [`camera`]
+//! 3. [`mesh`]
+//! 4. [`head`], [`texel`]
+//! 5. [`data`], [`lift`]
+//! 6. [`splat`], [`metrics`], [`synth`]
+//! 7. [`models`]
+//! 8. [`train`], [`drive`]
+//! 9. [`eval`]
+//! 10. [`study`], [`demo`], [`view`]
+//! 11. [`cli`]
 
 pub mod alloc;
 pub mod camera;
@@ -30,13 +48,11 @@ pub mod cli;
 pub mod data;
 pub mod demo;
 pub mod device;
-pub mod drivable;
 pub mod drive;
 pub mod error;
 pub mod eval;
 #[cfg(feature = "fusion")]
 pub mod fusion;
-pub mod gaussianavatars;
 pub mod gpu;
 pub mod head;
 pub mod io;
@@ -44,7 +60,7 @@ pub mod lift;
 pub mod limits;
 pub mod mesh;
 pub mod metrics;
-pub mod model;
+pub mod models;
 pub mod splat;
 pub mod study;
 pub mod synth;

@@ -16,10 +16,10 @@ use std::sync::OnceLock;
 
 use texavatars::device::BackendKind;
 use texavatars::drive::{self, CameraPath, Identity, Motion, View};
-use texavatars::eval::run::load_avatar;
 use texavatars::head::HeadAsset;
 use texavatars::io;
-use texavatars::model::constants::BACKGROUND;
+use texavatars::models::load_avatar;
+use texavatars::models::texavatars::constants::BACKGROUND;
 use texavatars::splat::{self, SplatParams};
 
 struct Fixture {

@@ -17,7 +17,7 @@ use texavatars::drive::outputs;
 use texavatars::head::HeadAsset;
 use texavatars::io::npz::NpzOut;
 use texavatars::limits::{self, Budget, Estimate, Source};
-use texavatars::model::NetConfig;
+use texavatars::models::texavatars::NetConfig;
 use texavatars::synth::SynthConfig;
 use texavatars::train::TrainConfig;
 

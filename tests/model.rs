@@ -11,8 +11,8 @@ use burn::tensor::{Device, Distribution, Gradients, Tensor, TensorData};
 use texavatars::camera::Camera;
 use texavatars::lift::{self, LiftMode, LiftParams, Topology};
 use texavatars::mesh::UvMesh;
-use texavatars::model::constants::*;
-use texavatars::model::{
+use texavatars::models::texavatars::constants::*;
+use texavatars::models::texavatars::{
     Bias, ConditionConfig, NetConfig, PlueckerMap, TexAvatarNet, WnConvTranspose2d,
     WnConvTranspose2dConfig, WnLinear, WnLinearConfig, view_input,
 };
@@ -259,7 +259,7 @@ fn folded_net_computes_the_same_maps() {
     // At initialisation v is the effective weight; scaling v (which the norm undoes) makes a
     // fold that skipped the norm without storing the weight show in the outputs.
     let net = TexAvatarNet {
-        exp2code: texavatars::model::Exp2Code {
+        exp2code: texavatars::models::texavatars::Exp2Code {
             linear: WnLinear {
                 v: Param::from_tensor(net.exp2code.linear.v.val() * 3.0),
                 ..net.exp2code.linear

@@ -22,7 +22,7 @@ use texavatars::data::refined::{self, RefinedParams};
 use texavatars::data::{HeadBatcher, HeadDataset, Split};
 use texavatars::device::BackendKind;
 use texavatars::head::HeadAsset;
-use texavatars::model::{Ablations, Avatar, NetConfig};
+use texavatars::models::texavatars::{Ablations, Avatar, NetConfig};
 use texavatars::synth::{self, SynthConfig};
 use texavatars::train::refine;
 use texavatars::train::{
@@ -288,7 +288,7 @@ fn each_ablation_builds_and_runs_one_step() {
         let r = train::train(&c, &options(&out, BackendKind::Flex))
             .unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(r.end_iteration, 1, "{name}");
-        let saved: texavatars::model::AvatarConfig =
+        let saved: texavatars::models::texavatars::AvatarConfig =
             serde_json::from_str(&std::fs::read_to_string(out.join(files::AVATAR_CONFIG)).unwrap())
                 .unwrap();
         assert_eq!(saved.ablations, ablations, "{name}");
@@ -857,7 +857,7 @@ fn a_diverging_run_stops_naming_the_iteration_and_keeps_its_last_checkpoint() {
         .map(&mut Poison)
         .save_file(run.join(files::AVATAR))
         .unwrap();
-    let e = texavatars::eval::run::load_avatar(&run, head(), &device).unwrap_err();
+    let e = texavatars::models::load_avatar(&run, head(), &device).unwrap_err();
     assert!(e.to_string().contains("NaN or infinite"), "{e}");
 }
 

@@ -6,11 +6,11 @@ use clap::{Args, Subcommand};
 
 use crate::cli::render::parse_size;
 use crate::device::BackendKind;
-use crate::drivable::Drivable;
 use crate::drive::fps::{self, Round};
 use crate::drive::{self, CameraPath, Identity, Motion, View};
 use crate::head::{HeadAsset, HeadPose};
-use crate::model::{AvatarConfig, NetConfig};
+use crate::models::Drivable;
+use crate::models::texavatars::{AvatarConfig, NetConfig};
 
 /// Benchmark commands.
 #[derive(Debug, Subcommand)]
@@ -69,7 +69,7 @@ fn fps_command(a: FpsArgs) -> anyhow::Result<()> {
     };
     let device = a.backend.device();
     let avatar: Box<dyn Drivable> = match &a.checkpoint {
-        Some(run) => crate::drivable::load(run, &head, &device)?.avatar,
+        Some(run) => crate::models::load(run, &head, &device)?.avatar,
         None => {
             let mut net = NetConfig::load(&a.net)?;
             net.condition.expression = head.model.num_expr;

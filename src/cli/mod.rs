@@ -91,7 +91,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         c => c,
     };
     // Every other command runs on a pool thread, where each parallel loop starts without a
-    // sleep and wake-up of the calling thread (src/threads.rs).
+    // sleep and wake-up of the calling thread (kernels/cpu/src/threads.rs).
     texavatars_cpu::threads::on_pool(|| match command {
         Command::Bench(c) => bench::run(c),
         Command::Demo(a) => demo::run(a),

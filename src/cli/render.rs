@@ -10,8 +10,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::camera::Camera;
 use crate::device::BackendKind;
-use crate::drivable::{self, Drivable};
 use crate::drive::{self, CameraPath, Identity, Motion, MotionKind, RenderOptions, View};
+use crate::models::{self, Drivable};
 
 use crate::limits;
 
@@ -134,7 +134,7 @@ impl DriveArgs {
         self.check()?;
         let head = drive::motion::head_for(self.head.as_deref(), Some(&self.motion))?;
         let device = self.backend.device();
-        let loaded = drivable::load(&self.checkpoint, &head, &device)?;
+        let loaded = models::load(&self.checkpoint, &head, &device)?;
         let avatar = loaded.avatar;
         let identity = match self.identity.as_ref().or(loaded.identity.as_ref()) {
             Some(p) => Identity::load(p)?,

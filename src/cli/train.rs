@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use clap::Args;
 
 use crate::device::BackendKind;
-use crate::gaussianavatars::train::GaTrainConfig;
 use crate::head::HeadAsset;
+use crate::train::gaussianavatars::GaTrainConfig;
 use crate::train::{self, TrainConfig, TrainOptions};
 
 /// The avatar models `train` can train.
@@ -104,7 +104,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<()> {
     let config = match config {
         Ok(c) => c,
         Err(ga) => {
-            let r = crate::gaussianavatars::train::train(&ga, &options)?;
+            let r = crate::train::gaussianavatars::train(&ga, &options)?;
             println!(
                 "trained GaussianAvatars iterations {}..{} in {:.1} s ({} Gaussians); {}",
                 r.start_iteration,

@@ -17,8 +17,8 @@
 use glam::{DMat3, DQuat, DVec3};
 
 use crate::data::Conditioning;
-use crate::drivable::Drivable;
 use crate::error::{Error, Result};
+use crate::models::Drivable;
 use crate::splat::Gaussians;
 use crate::splat::ply::PlyGaussians;
 use crate::splat::sh::C0;

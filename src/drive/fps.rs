@@ -17,8 +17,8 @@ use burn::tensor::Device;
 use crate::camera::Camera;
 use crate::data::BACKGROUND;
 use crate::data::Conditioning;
-use crate::drivable::Drivable;
 use crate::error::{Error, Result};
+use crate::models::Drivable;
 use crate::splat::{self, SplatParams};
 
 /// One round's figures (per render, milliseconds, means over the round): the model's stages

@@ -16,12 +16,12 @@ use image::{Delay, Frame, RgbImage, RgbaImage};
 
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drivable::{Drivable, ViewCache};
 use crate::drive::motion::Motion;
 use crate::drive::outputs;
 use crate::error::{Error, Result};
 use crate::io;
 use crate::limits;
+use crate::models::{Drivable, ViewCache};
 use crate::splat::Gaussians;
 
 /// Frames on the contact sheet (evenly spread over the motion).

@@ -19,7 +19,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use burn::module::Module;
 use serde::Serialize;
 
 use crate::data::{Conditioning, HeadDataset, Identity, PathPolicy, Split};
@@ -30,8 +29,6 @@ use crate::eval::regions::{REGIONS, RegionLabeler, RegionScore, RegionTally, Tri
 use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
 use crate::head::{HeadAsset, HeadPose};
 use crate::io;
-use crate::model::avatar::{Avatar, AvatarConfig};
-use crate::train::files;
 
 /// How to run [`evaluate`].
 #[derive(Clone, Debug)]
@@ -103,35 +100,6 @@ pub fn head_for(data: &Path) -> Result<HeadAsset> {
     }
 }
 
-/// Loads a trained avatar from a training run's folder, for inference (weight norms folded:
-/// [`Avatar::for_inference`]).
-pub fn load_avatar(run: &Path, head: &HeadAsset, device: &burn::tensor::Device) -> Result<Avatar> {
-    let cfg_path = run.join(files::AVATAR_CONFIG);
-    let text = std::fs::read_to_string(&cfg_path).map_err(|e| Error::io(&cfg_path, e))?;
-    let cfg: AvatarConfig = serde_json::from_str(&text).map_err(|e| {
-        Error::invalid(
-            cfg_path.display().to_string(),
-            format!("line {}", e.line()),
-            e.to_string(),
-        )
-    })?;
-    let weights = run.join(files::AVATAR);
-    if !weights.exists() {
-        return Err(Error::invalid(
-            weights.display().to_string(),
-            "avatar",
-            "missing: the run has not finished (train it, or resume it with `texavatars train --resume`)",
-        ));
-    }
-    let avatar = cfg
-        .init(&head.mesh, device)?
-        .try_load_file(&weights)
-        .map_err(|e| Error::invalid(weights.display().to_string(), "record", e.to_string()))?;
-    // A diverged run's NaN weights would render white frames without a word.
-    avatar.check_finite(&weights.display().to_string())?;
-    Ok(Avatar::for_inference(avatar))
-}
-
 /// Evenly spread `count` indices of `0..n`.
 fn spread(n: usize, count: usize) -> Vec<usize> {
     if n == 0 || count == 0 {
@@ -149,7 +117,7 @@ pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<Ev
         Some(p) => HeadAsset::load(p, None)?,
         None => head_for(&opts.data)?,
     };
-    let loaded = crate::drivable::load(&opts.run, &head, &device)?;
+    let loaded = crate::models::load(&opts.run, &head, &device)?;
     let avatar = loaded.avatar;
     let identity = match &loaded.identity {
         Some(p) => Some(Identity::load(p)?),

@@ -81,7 +81,7 @@ pub fn face_frames(kind: FrameKind, faces: &[[u32; 3]], vertices: &Tensor<2>) ->
 /// Lifts local attributes [K, 14] with frames [K, 3, 3] and anchors [K, 3]: returns the
 /// packed [K, 13] with the opacity channel still a logit. With the frames `k R` of
 /// [`FrameKind::ScaledRotation`] and the triangles' centroids as anchors this is
-/// GaussianAvatars' binding ([`crate::gaussianavatars::model`] uses it so).
+/// GaussianAvatars' binding ([`crate::models::gaussianavatars::model`] uses it so).
 pub fn lift_rows(local: Tensor<2>, frames: Tensor<3>, anchors: Tensor<2>) -> Tensor<2> {
     let k = local.dims()[0];
     let mean_l = local.clone().narrow(1, LOCAL_MEAN, 3);

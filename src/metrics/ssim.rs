@@ -4,7 +4,7 @@
 //!
 //! The window is separable, so it is applied as a 1x11 then an 11x1 convolution (exactly the
 //! 2D window, zero padding included), as one op with a handwritten backward
-//! ([`crate::metrics::blur`]); the rest is plain tensor ops, differentiable on an autodiff
+//! ([`texavatars_cpu::blur`]); the rest is plain tensor ops, differentiable on an autodiff
 //! device.
 
 use burn::tensor::Tensor;

@@ -25,10 +25,10 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::gaussianavatars::train::GaTrainConfig;
-use crate::model::Ablations;
+use crate::models::texavatars::Ablations;
 use crate::synth::SynthConfig;
 use crate::train::TrainConfig;
+use crate::train::gaussianavatars::GaTrainConfig;
 
 /// One subject of a study.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

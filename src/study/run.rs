@@ -118,7 +118,7 @@ pub fn run_one(
     // Continue a run this study started (its config is there); start one that never began.
     options.resume = train_dir.join(crate::train::files::CONFIG).is_file()
         || train_dir
-            .join(crate::gaussianavatars::train::ga_files::CONFIG)
+            .join(crate::train::gaussianavatars::ga_files::CONFIG)
             .is_file();
     options.backend = backend;
     options.app_log = false;
@@ -132,7 +132,7 @@ pub fn run_one(
             (c.iterations, r.complete)
         }
         (None, Some(c)) => {
-            let r = crate::gaussianavatars::train::train(&c, &options)?;
+            let r = crate::train::gaussianavatars::train(&c, &options)?;
             (c.iterations, r.complete)
         }
         (None, None) => {

@@ -9,7 +9,7 @@ use super::loss::LossWeights;
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::limits;
-use crate::model::{Ablations, AvatarConfig, NetConfig};
+use crate::models::texavatars::{Ablations, AvatarConfig, NetConfig};
 
 /// The networks of a training config: a net config file (relative paths are relative to the
 /// training config's folder) or the config itself.
@@ -333,7 +333,7 @@ impl TrainConfig {
             return None;
         };
         let sat = |f: &[usize]| limits::product(&f.iter().map(|&x| x as u64).collect::<Vec<_>>());
-        let base = crate::model::constants::BASE_RES;
+        let base = crate::models::texavatars::constants::BASE_RES;
         // Parameters and per-frame activations and column buffers, in floats.
         #[derive(Default)]
         struct Count {

@@ -67,7 +67,7 @@ pub const ADAM_BETA2: f64 = 0.999;
 /// Parameter paths (module field names) that train at [`LR_ENCODERS`]; every other
 /// parameter (the geometry and appearance decoders) trains at [`LR_DECODERS`]. A path
 /// matches when it contains the name (burn's `ParamGroup::from_any_predicates`); the names
-/// are the fields of [`crate::model::TexAvatarNet`].
+/// are the fields of [`crate::models::texavatars::TexAvatarNet`].
 pub const ENCODER_MODULES: [&str; 2] = ["exp2code", "view_encoder"];
 
 /// Checkpoints kept on disk: the newest and the one before, so that a run killed while

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use super::constants::*;
 use crate::metrics::{self, VggPerceptual};
-use crate::model::LocalMaps;
+use crate::models::texavatars::LocalMaps;
 
 /// Weights and thresholds of the objective (defaults: the paper's, [`super::constants`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

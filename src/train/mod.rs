@@ -1,6 +1,6 @@
 //! Training an avatar on a VHAP export (method §6) through burn's `Learner`.
 //!
-//! - The model burn trains is [`AvatarTraining`]: the [`Avatar`](crate::model::Avatar) and
+//! - The model burn trains is [`AvatarTraining`]: the [`Avatar`](crate::models::texavatars::Avatar) and
 //!   its objective ([`loss`]); [`step`] implements `TrainStep` (render, objective,
 //!   backward) and `InferenceStep` (the same without VGG, on the held-out camera).
 //! - The paper counts iterations, burn counts epochs: one burn epoch is one checkpoint
@@ -31,6 +31,7 @@ pub mod config;
 pub mod constants;
 pub mod folder;
 pub mod frames;
+pub mod gaussianavatars;
 pub mod launch;
 pub mod loader;
 pub mod lock;

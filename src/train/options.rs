@@ -7,7 +7,7 @@ use super::stop::StopControl;
 use crate::data::PathPolicy;
 use crate::device::BackendKind;
 use crate::head::HeadAsset;
-use crate::model::Avatar;
+use crate::models::texavatars::Avatar;
 
 /// How to run [`train`](super::train).
 #[derive(Clone, Debug)]

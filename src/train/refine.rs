@@ -15,7 +15,7 @@
 //!   mesh; the condition follows without a gradient.
 //! - A frame whose `flame_param` file is not a training one (another split's timestep) keeps
 //!   its tracked parameters and vertices.
-//! - The refined parameters are written with the avatar ([`RefinedParams`](crate::data::refined::RefinedParams),
+//! - The refined parameters are written with the avatar ([`crate::data::refined::RefinedParams`],
 //!   `refined_flame_param.npz` in GaussianAvatars' multi-frame layout plus a JSON index) and
 //!   `texavatars export flame-param` writes them as VHAP `flame_param` files.
 

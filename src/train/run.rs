@@ -18,7 +18,7 @@ use super::step::{AvatarTraining, Objective};
 use crate::error::{Error, Result};
 use crate::head::HeadAsset;
 use crate::metrics::VggPerceptual;
-use crate::model::AvatarConfig;
+use crate::models::texavatars::AvatarConfig;
 
 /// The head of `options`: given, or `data/../head/head.npz`, or the embedded default.
 fn find_head(options: &TrainOptions) -> Result<HeadAsset> {

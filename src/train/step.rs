@@ -15,7 +15,7 @@ use super::metrics::{Term, TermsInput};
 use super::refine::FlameRefinement;
 use super::stop::{Fault, StopControl};
 use crate::metrics::{VggPerceptual, psnr};
-use crate::model::Avatar;
+use crate::models::texavatars::Avatar;
 
 /// The objective's settings: weights, and the VGG loss with the iteration it starts at.
 #[derive(Clone)]

@@ -12,7 +12,7 @@
 //! bounded ([`limits`]).
 //!
 //! In the data flow it is a sibling of [`crate::drive`] (which it uses): a tool on top of a
-//! trained avatar of either model ([`crate::drivable::Drivable`]).
+//! trained avatar of either model ([`crate::models::Drivable`]).
 
 pub mod limits;
 pub mod protocol;

@@ -20,13 +20,13 @@ use crate::data::dataset::pose_conditioning;
 use crate::data::vhap::ETA_DIM;
 use crate::data::{Conditioning, HeadDataset, Identity};
 use crate::device::BackendKind;
-use crate::drivable::{self, Drivable, ViewCache};
 use crate::drive::cameras::centre;
 use crate::drive::fps::sync;
 use crate::drive::{Motion, MotionKind};
 use crate::error::{Error, Result};
 use crate::head::{HeadAsset, HeadPose};
-use crate::model::{AvatarConfig, NetConfig};
+use crate::models::texavatars::{AvatarConfig, NetConfig};
+use crate::models::{self, Drivable, ViewCache};
 use crate::synth::cameras::look_at;
 
 /// What the viewer shows.
@@ -116,7 +116,7 @@ impl Scene {
         let device = opts.backend.device();
         let (avatar, run_identity, source): (Box<dyn Drivable>, _, _) = match &opts.checkpoint {
             Some(run) => {
-                let l = drivable::load(run, &head, &device)?;
+                let l = models::load(run, &head, &device)?;
                 (l.avatar, l.identity, run.display().to_string())
             }
             None => {

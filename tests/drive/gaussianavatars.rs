@@ -274,8 +274,9 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
     // texavatars writes the same file GaussianAvatars does: byte for byte the hand-built one.
     let (stored, binding) = ply::read_bound(&dir.join("point_cloud.ply")).expect("read");
     let again = tmp("write");
-    let written = texavatars::gaussianavatars::folder::write_point_cloud(&again, &stored, &binding)
-        .expect("write");
+    let written =
+        texavatars::models::gaussianavatars::folder::write_point_cloud(&again, &stored, &binding)
+            .expect("write");
     assert_eq!(
         std::fs::read(&written).expect("written"),
         std::fs::read(dir.join("point_cloud.ply")).expect("hand-built")
@@ -373,7 +374,7 @@ fn a_binding_beyond_the_head_model_names_the_file_and_the_fix() {
     let mut gs = stored(head.model.faces.len());
     gs[2].binding = head.model.faces.len() as u32 + 5;
     write_point_cloud(&dir.join("point_cloud.ply"), &gs);
-    let e = texavatars::gaussianavatars::GaAvatar::load(
+    let e = texavatars::models::gaussianavatars::GaAvatar::load(
         &dir,
         &head.model.faces,
         head.model.num_vertices(),
@@ -384,7 +385,7 @@ fn a_binding_beyond_the_head_model_names_the_file_and_the_fix() {
         e.contains("point_cloud.ply") && e.contains("Gaussian 2") && e.contains("--head"),
         "{e}"
     );
-    let e = texavatars::gaussianavatars::GaAvatar::load(
+    let e = texavatars::models::gaussianavatars::GaAvatar::load(
         &dir.join("absent"),
         &head.model.faces,
         head.model.num_vertices(),

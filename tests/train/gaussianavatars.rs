@@ -10,9 +10,9 @@ use burn::module::{Module, Param};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
 use texavatars::device::BackendKind;
-use texavatars::gaussianavatars::GaModel;
-use texavatars::gaussianavatars::train::{self as ga, GaTrainConfig, edit_moments, objective};
+use texavatars::models::gaussianavatars::GaModel;
 use texavatars::splat::ply;
+use texavatars::train::gaussianavatars::{self as ga, GaTrainConfig, edit_moments, objective};
 use texavatars::train::{FrameLoader, files};
 
 use super::{batch_of, data, head, options, out_dir};
@@ -282,7 +282,7 @@ fn ga_train_command_writes_gaussianavatars_layout() {
 /// position's is `position_lr_init x extent` decayed to its first step.
 #[test]
 fn each_attribute_trains_at_gaussianavatars_rate() {
-    use texavatars::gaussianavatars::constants as c;
+    use texavatars::train::gaussianavatars::constants as c;
     #[derive(Module, Debug)]
     struct Wrap {
         model: GaModel,

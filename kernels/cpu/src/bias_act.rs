@@ -77,14 +77,14 @@ pub trait BiasActBackend: Backend {
 }
 
 /// The forward from burn's tensor ops: the trait's default body, and the bias and
-/// activation of [`super::conv_t_bias_act`]'s default body.
+/// activation of [`crate::conv_bias_act`]'s default body.
 pub(super) fn composed_forward<B: Backend>(yb: OutBias<B>, act: bool) -> FloatTensor<B> {
     let z = B::float_add(yb.y, broadcast_bias::<B>(yb.bias));
     if act { leaky::<B>(z) } else { z }
 }
 
 /// The backward from burn's tensor ops: the trait's default body, and the bias and
-/// activation part of [`super::conv_t_bias_act`]'s default body.
+/// activation part of [`crate::conv_bias_act`]'s default body.
 pub(super) fn composed_backward<B: Backend>(
     out: FloatTensor<B>,
     grad: FloatTensor<B>,

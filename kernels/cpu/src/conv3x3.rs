@@ -95,7 +95,7 @@ pub fn conv3x3(
     out
 }
 
-/// PyTorch's OIHW 3x3 kernel → the column weights `[9·C_in, C_out]` (see [`Layer`]).
+/// PyTorch's OIHW 3x3 kernel → the column weights `[9·C_in, C_out]`, rows ordered (ky, kx, c_in).
 pub fn column_weights(oihw: &[f32], ci: usize, co: usize) -> Vec<f32> {
     let mut fwd = vec![0.0f32; 9 * ci * co];
     for t in 0..9 {

@@ -35,7 +35,7 @@ use crate::simd::with_avx2;
 /// its α² products read and write them, so they should stay in the core's cache. Chosen by
 /// timing VGG16's 64-channel layer at 138 x 200 with F(4x4, 3x3) on a machine with 2 MiB of
 /// L2 per core (forward and input gradient): 1 MiB was faster than 512 KiB and 2 MiB.
-const WINOGRAD_BLOCK: usize = 1 << 18;
+pub const WINOGRAD_BLOCK: usize = 1 << 18;
 
 /// Floats of transformed tiles up to which a map is one Winograd block shared by all
 /// threads (16 MiB: VGG16's maps from conv2 on at 138 x 200; none at 550 x 802).
@@ -51,7 +51,7 @@ pub const WINOGRAD_MIN_CHANNELS: usize = 16;
 
 /// Channels (the larger of input and output) up to which a Winograd convolution is
 /// F(4x4, 3x3); above, F(2x2, 3x3). See [`winograd_for`].
-const F4_MAX_CHANNELS: usize = 256;
+pub const F4_MAX_CHANNELS: usize = 256;
 
 thread_local! {
     /// The calling thread's buffers for a shared Winograd block (transformed tiles,
@@ -264,7 +264,7 @@ fn winograd_mapped(
     out.pop().unwrap_or_default()
 }
 
-/// [`winograd_mapped`] of several maps of the same size with the same weights (the two
+/// `winograd_mapped` of several maps of the same size with the same weights (the two
 /// images of a loss evaluation): where their transformed tiles fit one shared block
 /// together, the α² products take the tiles of all of them, so each `U_ξ` is packed and
 /// read from memory once for all (VGG16's 512-channel layers read 16 MiB of weights per

@@ -14,7 +14,6 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::binding::check_binding;
-use super::constants::INIT_OPACITY;
 use crate::error::Result;
 use crate::kernels::lift::constants::{
     LOCAL_CHANNELS, LOCAL_LOG_SCALE, LOCAL_MEAN, LOCAL_OPACITY, LOCAL_QUAT, OUT_COV, OUT_MEAN,
@@ -24,6 +23,10 @@ use crate::lift::reference::{face_frames, lift_rows};
 use crate::splat::ply::PlyGaussians;
 use crate::splat::{Gaussians, sh};
 use crate::texel::FrameKind;
+
+/// Initial opacity (`create_from_pcd`: `inverse_sigmoid(0.1)`), local log scale 0 (the
+/// triangle's own scale) and identity rotation, at the triangle's centroid.
+pub const INIT_OPACITY: f32 = 0.1;
 
 /// The stored Gaussians of a GaussianAvatars avatar (`GaussianModel`'s `_xyz`,
 /// `_features_dc` / `_features_rest`, `_opacity`, `_scaling`, `_rotation`) and `binding`.
@@ -220,7 +223,7 @@ impl GaModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gaussianavatars::binding::{face_frames as host_frames, to_world};
+    use crate::models::gaussianavatars::binding::{face_frames as host_frames, to_world};
     use crate::util::rng::Pcg;
 
     fn host(t: Tensor<2>) -> Vec<f32> {

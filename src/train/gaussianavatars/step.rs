@@ -12,13 +12,13 @@ use super::moments::edit_moments;
 use super::state::{DensityState, GaSetup, Pending, frozen, host1};
 use crate::camera::Camera;
 use crate::data::BACKGROUND;
-use crate::gaussianavatars::constants as ga;
-use crate::gaussianavatars::density::{self, DensifySettings, Stats};
-use crate::gaussianavatars::losses::{position_loss, scale_loss};
-use crate::gaussianavatars::model::GaModel;
 use crate::metrics::{self, psnr};
+use crate::models::gaussianavatars::model::GaModel;
 use crate::splat::cpu::{self, ProjCamera};
 use crate::splat::{self, Gaussians, SplatParams};
+use crate::train::gaussianavatars::constants as ga;
+use crate::train::gaussianavatars::density::{self, DensifySettings, Stats};
+use crate::train::gaussianavatars::losses::{position_loss, scale_loss};
 use crate::train::loss::LossTerms;
 use crate::train::refine::FlameRefinement;
 use crate::train::step::guarded;
@@ -243,10 +243,11 @@ impl TrainStep for GaTraining {
             .chunks(3)
             .map(|c| [c[0], c[1], c[2]])
             .collect();
-        let face_scale = crate::gaussianavatars::binding::face_frames(&self.setup.faces, &verts)
-            .iter()
-            .map(|f| f.scale)
-            .collect();
+        let face_scale =
+            crate::models::gaussianavatars::binding::face_frames(&self.setup.faces, &verts)
+                .iter()
+                .map(|f| f.scale)
+                .collect();
         *self.setup.pending.lock().expect("not poisoned") = Some(Pending {
             iteration: item.iteration,
             screen_grad,

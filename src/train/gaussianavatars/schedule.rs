@@ -6,7 +6,7 @@ use burn::lr_scheduler::{LrScheduler, LrSchedulerRecord};
 use burn::module::ParamGroup;
 use burn::optim::{AdamConfig, ModuleOptimizer};
 
-use crate::gaussianavatars::constants::{self as ga, scaled};
+use crate::train::gaussianavatars::constants::{self as ga, scaled};
 use crate::train::refine;
 
 /// GaussianAvatars' references iteration of the SH degree increments (`train.py`:

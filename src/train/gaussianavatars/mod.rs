@@ -4,20 +4,20 @@
 //! [`crate::train`] (data checks, one run per folder, checkpoints every interval, resume,
 //! signals, progress, non-finite guard):
 //!
-//! - **model**: [`GaModel`](super::GaModel) initialised as GaussianAvatars (one Gaussian
+//! - **model**: [`GaModel`](crate::models::gaussianavatars::GaModel) initialised as GaussianAvatars (one Gaussian
 //!   per triangle), rendered by texavatars' rasterizer on the data's white background;
 //! - **objective** (`train.py`): `0.8 L1 + 0.2 (1 - SSIM)` plus the position and scale
-//!   regularisers over the visible Gaussians ([`super::losses`]); the metric lines report
+//!   regularisers over the visible Gaussians ([`losses`]); the metric lines report
 //!   the regularisers weighted;
 //! - **optimiser** (`training_setup`): Adam, eps 1e-15, one learning rate per attribute
-//!   ([`super::constants`]); the position's decays as `get_expon_lr_func` over the run and
+//!   ([`constants`]); the position's decays as `get_expon_lr_func` over the run and
 //!   is multiplied by the cameras' extent (`spatial_lr_scale = cameras_extent`, as
 //!   GaussianAvatars' `Scene` passes it);
 //! - **schedule**: GaussianAvatars' 600,000-iteration intervals scaled to the run
-//!   ([`super::constants::scaled`]): SH degree raised every `scaled(1000)`, densification
+//!   ([`constants::scaled`]): SH degree raised every `scaled(1000)`, densification
 //!   from `scaled(10,000)` every `scaled(2,000)` iterations, opacity reset every
 //!   `scaled(60,000)` and, on a white background, once at the start of densification;
-//! - **density control** ([`super::density`]): the screen-space gradient of every step
+//! - **density control** ([`density`]): the screen-space gradient of every step
 //!   comes from the rasterizer's tap ([`crate::splat::render_tapped`]); on a densification
 //!   or reset iteration the Gaussians change as in GaussianAvatars, and the optimiser's
 //!   moments follow the rows (edited through its burnpack record). As in GaussianAvatars,
@@ -42,6 +42,9 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod constants;
+pub mod density;
+pub mod losses;
 pub mod moments;
 pub mod run;
 pub mod schedule;

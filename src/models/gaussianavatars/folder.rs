@@ -16,9 +16,9 @@ use burn::tensor::Device;
 use super::binding::{check_binding, face_frames, to_world};
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drivable::{Drivable, StageMark, ViewCache};
 use crate::error::{Error, Result};
 use crate::limits;
+use crate::models::{Drivable, StageMark, ViewCache};
 use crate::splat::Gaussians;
 use crate::splat::ply::{self, PlyGaussians};
 

@@ -6,9 +6,9 @@ use burn::tensor::{Device, Tensor, TensorData};
 use super::Avatar;
 use crate::camera::Camera;
 use crate::data::Conditioning;
-use crate::drivable::{Drivable, StageMark, ViewCache};
 use crate::error::Result;
 use crate::limits;
+use crate::models::{Drivable, StageMark, ViewCache};
 use crate::splat::Gaussians;
 
 /// The networks' condition `[expr, pose, eta]` [1, C] and the posed vertices [1, V, 3] of a
@@ -31,7 +31,7 @@ pub fn frame_inputs(c: &Conditioning, device: &Device) -> (Tensor<2>, Tensor<3>)
 
 impl Avatar {
     /// The Gaussians of frame `c` for `camera`, with the camera's Pluecker map already
-    /// computed ([`crate::model::TexAvatarNet::view_input`]), e.g. kept while the camera
+    /// computed ([`crate::models::texavatars::TexAvatarNet::view_input`]), e.g. kept while the camera
     /// stays put.
     pub fn frame_gaussians_with(
         &self,

@@ -10,11 +10,11 @@ use super::schedule::{GaSchedule, lr_scheduler, optimizer};
 use super::state::{DensityState, GaSetup};
 use super::step::GaTraining;
 use crate::error::{Error, Result};
-use crate::gaussianavatars::binding::check_binding;
-use crate::gaussianavatars::density::{self, Stats};
-use crate::gaussianavatars::folder::write_point_cloud;
-use crate::gaussianavatars::model::GaModel;
 use crate::head::HeadAsset;
+use crate::models::gaussianavatars::binding::check_binding;
+use crate::models::gaussianavatars::folder::write_point_cloud;
+use crate::models::gaussianavatars::model::GaModel;
+use crate::train::gaussianavatars::density::{self, Stats};
 use crate::train::refine::{FlameRefinement, Timesteps};
 use crate::train::{Launch, Schedule, TrainOptions, files, open_frames, prepare_folder};
 
@@ -198,7 +198,7 @@ pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainRe
         std::fs::create_dir_all(&output).map_err(|e| Error::io(&output, e))?;
         write_point_cloud(&output, &stored, &binding)?;
         let identity = out.join(files::IDENTITY);
-        let flame = output.join(crate::gaussianavatars::folder::FLAME_PARAM);
+        let flame = output.join(crate::models::gaussianavatars::folder::FLAME_PARAM);
         std::fs::copy(&identity, &flame).map_err(|e| Error::io(&flame, e))?;
         if let Some(r) = &trained.refine {
             r.refined().save(out)?;

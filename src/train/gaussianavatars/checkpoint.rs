@@ -8,8 +8,8 @@ use burn::tensor::{Device, TensorData};
 use super::state::{DensityState, GaSetup};
 use super::step::GaTraining;
 use crate::error::{Error, Result};
-use crate::gaussianavatars::density::Stats;
-use crate::gaussianavatars::model::GaModel;
+use crate::models::gaussianavatars::model::GaModel;
+use crate::train::gaussianavatars::density::Stats;
 use crate::train::refine::FlameRefinement;
 
 /// The module of a checkpoint's record (`model-E.bpk`): the Gaussians, binding and

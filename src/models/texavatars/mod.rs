@@ -11,6 +11,7 @@ pub mod avatar;
 pub mod constants;
 pub mod decoders;
 pub mod drivable;
+pub mod files;
 pub mod layers;
 pub mod net;
 pub mod pluecker;

@@ -8,7 +8,7 @@ use crate::device::BackendKind;
 use crate::error::{Error, Result};
 
 /// A GaussianAvatars training run (`configs/train_gaussianavatars.json`): its length and
-/// bookkeeping; everything else is GaussianAvatars' ([`crate::gaussianavatars::constants`]).
+/// bookkeeping; everything else is GaussianAvatars' ([`crate::train::gaussianavatars::constants`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct GaTrainConfig {

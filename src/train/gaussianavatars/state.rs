@@ -8,8 +8,8 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::schedule::GaSchedule;
-use crate::gaussianavatars::density::Stats;
 use crate::train::StopControl;
+use crate::train::gaussianavatars::density::Stats;
 
 /// One view's statistics, from the step to `optimize`.
 #[derive(Clone, Debug)]
@@ -31,7 +31,7 @@ pub struct GaSetup {
     pub faces: Arc<Vec<[u32; 3]>>,
     pub schedule: GaSchedule,
     /// The training cameras' extent
-    /// ([`density::cameras_extent`](crate::gaussianavatars::density::cameras_extent)).
+    /// ([`density::cameras_extent`](crate::train::gaussianavatars::density::cameras_extent)).
     pub extent: f32,
     pub seed: u64,
     /// The view the last step rendered, for `optimize`.

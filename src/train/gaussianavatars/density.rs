@@ -31,7 +31,7 @@
 
 use glam::{Mat3, Quat, Vec3};
 
-use super::binding::unit;
+use crate::models::gaussianavatars::binding::unit;
 use crate::splat::ply::PlyGaussians;
 use crate::util::rng::Pcg;
 

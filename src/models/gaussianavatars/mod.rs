@@ -1,6 +1,6 @@
 //! GaussianAvatars (Qian et al., CVPR 2024), the binding baseline: Gaussians stored local to
 //! the FLAME triangle each is bound to ([`binding`]), placed every frame by that triangle's
-//! posed frame. A sibling of [`crate::model`]; both offer [`crate::drivable::Drivable`].
+//! posed frame. A sibling of [`crate::models::texavatars`]; both offer [`crate::models::Drivable`].
 //!
 //! What is here: GaussianAvatars' output folders ([`folder`]: `point_cloud.ply` with
 //! `binding_0`, SH degree 0-3, and `flame_param.npz`) loaded, driven, rendered by
@@ -10,12 +10,8 @@
 //! density control with binding inheritance, its objective and schedule) is not here yet.
 
 pub mod binding;
-pub mod constants;
-pub mod density;
 pub mod folder;
-pub mod losses;
 pub mod model;
-pub mod train;
 
 pub use binding::{FaceFrame, face_frames, to_world};
 pub use folder::GaAvatar;

@@ -1,21 +1,18 @@
 //! The one interface every avatar model offers to the commands that drive it: a frame in,
 //! Gaussians out.
 //!
-//! `render`, `export ply` and the drive helpers ([`crate::drive`]) hold a
-//! `Box<dyn Drivable>` and never name a model. The models are sibling folders that each
-//! implement this trait: [`crate::model`] (TexAvatars: decoders, texel lift) and
-//! [`crate::gaussianavatars`] (GaussianAvatars: Gaussians bound to mesh triangles); neither
-//! knows the other, and a third model is one more folder and one more `impl`.
-
-use std::path::{Path, PathBuf};
+//! `render`, `export ply`, evaluation and the drive helpers ([`crate::drive`]) hold a
+//! `Box<dyn Drivable>` from [`super::load()`] and never name a model. The models are sibling
+//! folders that each implement this trait: [`super::texavatars`] (TexAvatars: decoders,
+//! texel lift) and [`super::gaussianavatars`] (GaussianAvatars: Gaussians bound to mesh
+//! triangles); neither knows the other, and a third model is one more folder, one more
+//! `impl` and one more case in [`super::load()`].
 
 use burn::tensor::Device;
 
 use crate::camera::Camera;
 use crate::data::Conditioning;
 use crate::error::Result;
-use crate::gaussianavatars::GaAvatar;
-use crate::head::HeadAsset;
 use crate::splat::Gaussians;
 use crate::splat::ply::PlyGaussians;
 
@@ -78,32 +75,4 @@ pub trait Drivable {
     fn frame_ply(&self, _c: &Conditioning) -> Option<Result<PlyGaussians>> {
         None
     }
-}
-
-/// An avatar loaded from an output folder, with the subject file it was trained on.
-pub struct Loaded {
-    pub avatar: Box<dyn Drivable>,
-    /// The FLAME parameter file that holds the avatar's subject (shape, static offsets),
-    /// when the folder has one: a `train` run's `canonical_flame_param.npz`, a
-    /// GaussianAvatars folder's `flame_param.npz`.
-    pub identity: Option<PathBuf>,
-}
-
-/// Loads whichever model `checkpoint` holds, for `head`: a GaussianAvatars output folder
-/// ([`GaAvatar::find`]), else a `texavatars train` run.
-pub fn load(checkpoint: &Path, head: &HeadAsset, device: &Device) -> Result<Loaded> {
-    if GaAvatar::find(checkpoint).is_some() {
-        let ga = GaAvatar::load(checkpoint, &head.model.faces, head.model.num_vertices())?;
-        let identity = ga.flame_param();
-        return Ok(Loaded {
-            avatar: Box::new(ga),
-            identity,
-        });
-    }
-    let avatar = crate::eval::run::load_avatar(checkpoint, head, device)?;
-    let identity = checkpoint.join(crate::train::files::IDENTITY);
-    Ok(Loaded {
-        avatar: Box::new(avatar),
-        identity: identity.is_file().then_some(identity),
-    })
 }

@@ -58,10 +58,6 @@ pub const PRUNE_MIN_OPACITY: f32 = 0.005;
 /// `size_threshold = 20` (pixels of screen radius) after the first opacity reset.
 pub const PRUNE_SCREEN_SIZE: f32 = 20.0;
 
-/// Initial opacity (`create_from_pcd`: `inverse_sigmoid(0.1)`), local log scale 0 (the
-/// triangle's own scale) and identity rotation, at the triangle's centroid.
-pub const INIT_OPACITY: f32 = 0.1;
-
 /// `lr_init * ... ` of `get_expon_lr_func` at `step` of `max_steps`, with its delay (here
 /// `lr_delay_steps = 0`, as GaussianAvatars calls it, so the delay factor is 1 and
 /// `lr_delay_mult` has no effect): `exp(ln(init) (1 - t) + ln(final) t)`, `t = step /
