@@ -9,12 +9,7 @@
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
 
-use burn::backend::autodiff::{
-    Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, Ops},
-};
+use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
@@ -185,19 +180,14 @@ impl<B: burn::backend::fusion::FusionBackend + LiftBackend> LiftBackend
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct LiftBackwardOp;
-
-impl<B: Backend + LiftBackend> Backward<B, 2> for LiftBackwardOp {
-    type State = (FloatTensor<B>, FloatTensor<B>, LiftParams);
-
-    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 2>(ops, grads, |(local, vertices, params), grad| {
-            let g = B::lift_backward(local, vertices, grad, params);
-            [g.local, g.vertices]
-        });
+texavatars_cpu::backward_op!(
+    LiftBackwardOp<2>: LiftBackend,
+    (FloatTensor<B>, FloatTensor<B>, LiftParams),
+    |(local, vertices, params), grad| {
+        let g = B::lift_backward(local, vertices, grad, params);
+        [g.local, g.vertices]
     }
-}
+);
 
 impl<B: Backend + LiftBackend, C: CheckpointStrategy> LiftBackend for Autodiff<B, C> {
     fn lift(

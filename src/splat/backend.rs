@@ -10,9 +10,8 @@
 
 use burn::backend::autodiff::{
     Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, NodeGuard, Ops},
+    checkpoint::strategy::CheckpointStrategy,
+    ops::{Backward, NodeGuard},
 };
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{
@@ -464,20 +463,15 @@ fn first_columns<B: Backend>(t: FloatTensor<B>, n: usize, k: usize) -> FloatTens
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct SplatBackward;
-
-impl<B: Backend + SplatBackend> Backward<B, 5> for SplatBackward {
-    type State = (SplatInputs<B>, SplatState<B>, SplatParams);
-
-    fn backward(self, ops: Ops<Self::State, 5>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 5>(ops, grads, |(inputs, state, params), grad| {
-            let g = B::splat_backward(inputs, state, grad, params);
-            let screen = screen_in_ndc::<B>(&g.screen, &params);
-            [g.means, g.cov6, g.colors, g.opacities, screen]
-        });
+texavatars_cpu::backward_op!(
+    SplatBackward<5>: SplatBackend,
+    (SplatInputs<B>, SplatState<B>, SplatParams),
+    |(inputs, state, params), grad| {
+        let g = B::splat_backward(inputs, state, grad, params);
+        let screen = screen_in_ndc::<B>(&g.screen, &params);
+        [g.means, g.cov6, g.colors, g.opacities, screen]
     }
-}
+);
 
 /// The tap's gradient in 3DGS's units: d/d(NDC) = d/d(pixel) * (W/2, H/2)
 /// (diff-gaussian-rasterization, `cuda_rasterizer/backward.cu`, `renderCUDA`:
@@ -489,25 +483,20 @@ fn screen_in_ndc<B: Backend>(pixels: &FloatTensor<B>, params: &SplatParams) -> F
     B::float_mul(pixels.clone(), half)
 }
 
-/// The backward of [`SplatBackend::splat_packed`]: the inner backend's gradients of the
-/// four column blocks, joined into one `[N, 13]` gradient of `packed`.
-#[derive(Debug)]
-struct SplatPackedBackward;
-
-impl<B: Backend + SplatBackend> Backward<B, 2> for SplatPackedBackward {
-    type State = (SplatInputs<B>, SplatState<B>, SplatParams);
-
-    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 2>(ops, grads, |(inputs, state, params), grad| {
-            let g = B::splat_backward(inputs, state, grad, params);
-            let n = g.opacities.shape()[0];
-            let opacities = B::float_reshape(g.opacities, Shape::from(vec![n, 1]));
-            // The order of `crate::lift::constants`: OUT_MEAN, OUT_COV, OUT_RGB, OUT_OPACITY.
-            let packed = B::float_cat(vec![g.means, g.cov6, g.colors, opacities], 1);
-            [packed, screen_in_ndc::<B>(&g.screen, &params)]
-        });
+texavatars_cpu::backward_op!(
+    /// The backward of [`SplatBackend::splat_packed`]: the inner backend's gradients of the
+    /// four column blocks, joined into one `[N, 13]` gradient of `packed`.
+    SplatPackedBackward<2>: SplatBackend,
+    (SplatInputs<B>, SplatState<B>, SplatParams),
+    |(inputs, state, params), grad| {
+        let g = B::splat_backward(inputs, state, grad, params);
+        let n = g.opacities.shape()[0];
+        let opacities = B::float_reshape(g.opacities, Shape::from(vec![n, 1]));
+        // The order of `crate::lift::constants`: OUT_MEAN, OUT_COV, OUT_RGB, OUT_OPACITY.
+        let packed = B::float_cat(vec![g.means, g.cov6, g.colors, opacities], 1);
+        [packed, screen_in_ndc::<B>(&g.screen, &params)]
     }
-}
+);
 
 fn inner_inputs<B: Backend, C: CheckpointStrategy>(
     i: SplatInputs<Autodiff<B, C>>,

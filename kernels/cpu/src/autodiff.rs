@@ -1,6 +1,6 @@
 //! The two halves every op's `Autodiff` implementation shares: recording the forward pass in
 //! burn's graph ([`forward`]) and handing the parents their gradients in the backward pass
-//! ([`backward`]). Each op keeps only what is its own: which tensors are its parents, what
+//! ([`backward`], declared with [`backward_op!`](crate::backward_op)). Each op keeps only what is its own: which tensors are its parents, what
 //! it saves, and which of its backend's functions computes the gradients.
 
 use burn::backend::Backend;
@@ -74,4 +74,32 @@ pub fn backward<B: Backend, S, const N: usize>(
             grads.register::<B>(node.id, value);
         }
     }
+}
+
+/// Declares an op's backward step: the unit struct `$op`, and its `Backward<B, N>` for
+/// every backend `B` with the extension `$ext`, whose state is `$state` and whose parents'
+/// gradients `$grads` computes from the state and the output's gradient (a closure, as
+/// [`backward`] takes it; `B` is the backend).
+#[macro_export]
+macro_rules! backward_op {
+    ($(#[$doc:meta])* $op:ident<$n:literal>: $ext:path, $state:ty, $grads:expr) => {
+        $(#[$doc])*
+        #[derive(Debug)]
+        struct $op;
+
+        impl<B: ::burn::backend::Backend + $ext> ::burn::backend::autodiff::ops::Backward<B, $n>
+            for $op
+        {
+            type State = $state;
+
+            fn backward(
+                self,
+                ops: ::burn::backend::autodiff::ops::Ops<Self::State, $n>,
+                grads: &mut ::burn::backend::autodiff::grads::Gradients,
+                _: &mut ::burn::backend::autodiff::checkpoint::base::Checkpointer,
+            ) {
+                $crate::autodiff::backward::<B, _, $n>(ops, grads, $grads);
+            }
+        }
+    };
 }

@@ -25,12 +25,7 @@
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
 
-use burn::backend::autodiff::{
-    Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, Ops},
-};
+use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, TensorMetadata, backend_extension,
@@ -287,19 +282,14 @@ impl BiasActBackend for Cube {}
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct BiasActBackwardOp;
-
-impl<B: Backend + BiasActBackend> Backward<B, 2> for BiasActBackwardOp {
-    type State = (FloatTensor<B>, bool, Vec<usize>);
-
-    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 2>(ops, grads, |(out, act, bias_shape), grad| {
-            let g = B::bias_act_backward(out, grad, act, bias_shape);
-            [g.y, g.bias]
-        });
+crate::backward_op!(
+    BiasActBackwardOp<2>: BiasActBackend,
+    (FloatTensor<B>, bool, Vec<usize>),
+    |(out, act, bias_shape), grad| {
+        let g = B::bias_act_backward(out, grad, act, bias_shape);
+        [g.y, g.bias]
     }
-}
+);
 
 impl<B: Backend + BiasActBackend, C: CheckpointStrategy> BiasActBackend for Autodiff<B, C> {
     fn bias_act(OutBias { y, bias }: OutBias<Self>, act: bool) -> FloatTensor<Self> {
@@ -331,9 +321,10 @@ impl<B: Backend + BiasActBackend, C: CheckpointStrategy> BiasActBackend for Auto
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::on_cpu_backends;
     use burn::tensor::{Device, Distribution, TensorData};
 
-    use crate::check::{check_finite_differences, host, output_and_gradients};
+    use crate::check::{check_finite_differences, host, output_and_gradients, pattern};
 
     fn max_rel(a: &[f32], b: &[f32]) -> f32 {
         crate::check::max_rel(a, b, 1e-3)
@@ -376,15 +367,7 @@ mod tests {
         }
     }
 
-    #[test]
-    fn matches_burn_on_flex() {
-        check_all(Device::flex().autodiff());
-    }
-
-    #[test]
-    fn matches_burn_on_ndarray() {
-        check_all(Device::ndarray().autodiff());
-    }
+    on_cpu_backends!(check_all: matches_burn_on_flex, matches_burn_on_ndarray);
 
     /// Central finite differences of `sum(bias_act(y, b) * g)` away from the kink.
     #[test]
@@ -403,7 +386,7 @@ mod tests {
             })
             .collect();
         let bs: Vec<f32> = (0..c * h * w).map(|i| 0.01 * i as f32 - 0.03).collect();
-        let gs: Vec<f32> = (0..len).map(|i| ((i * 7 % 5) as f32 - 2.0) / 2.0).collect();
+        let gs: Vec<f32> = pattern(len, 7, 5, 2.0);
         let f = |yv: &[f32], bv: &[f32]| -> f64 {
             let y = Tensor::<4>::from_data(TensorData::new(yv.to_vec(), [n, c, h, w]), &device);
             let b = Tensor::<3>::from_data(TensorData::new(bv.to_vec(), [c, h, w]), &device);

@@ -210,6 +210,7 @@ impl<B: Backend + BlurBackend, C: CheckpointStrategy> BlurBackend for Autodiff<B
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::on_cpu_backends;
     use burn::tensor::{Device, Distribution};
 
     fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -247,15 +248,7 @@ mod tests {
         }
     }
 
-    #[test]
-    fn matches_conv2d_on_flex() {
-        check(Device::flex().autodiff());
-    }
-
-    #[test]
-    fn matches_conv2d_on_ndarray() {
-        check(Device::ndarray().autodiff());
-    }
+    on_cpu_backends!(check: matches_conv2d_on_flex, matches_conv2d_on_ndarray);
 
     /// The trait's default body (what wgpu runs) against the host passes, on flex.
     #[test]

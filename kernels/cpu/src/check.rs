@@ -111,3 +111,29 @@ pub fn flex_pattern(shape: &[usize], off: usize, add: f32) -> FloatTensor<Flex> 
         .collect();
     Flex::float_from_data(TensorData::new(data, shape.to_vec()), &Default::default())
 }
+
+/// `len` test values `((i·a mod m) - m/2) / d` for `i = 0, 1, …`: a fixed, varied pattern in
+/// about `[-m/2d, m/2d]` (integer `m/2`), the inputs of the finite-difference checks.
+pub fn pattern(len: usize, a: usize, m: usize, d: f32) -> Vec<f32> {
+    (0..len)
+        .map(|i| ((i * a % m) as f32 - (m / 2) as f32) / d)
+        .collect()
+}
+
+/// Two tests of a check over a device, on each CPU backend under autodiff: `$flex` runs
+/// `$check(Device::flex().autodiff())`, `$ndarray` runs it on ndarray.
+macro_rules! on_cpu_backends {
+    ($check:ident: $flex:ident, $ndarray:ident) => {
+        #[test]
+        fn $flex() {
+            $check(burn::tensor::Device::flex().autodiff());
+        }
+
+        #[test]
+        #[allow(deprecated)]
+        fn $ndarray() {
+            $check(burn::tensor::Device::ndarray().autodiff());
+        }
+    };
+}
+pub(crate) use on_cpu_backends;

@@ -23,12 +23,7 @@
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
 
-use burn::backend::autodiff::{
-    Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, Ops},
-};
+use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, TensorMetadata, backend_extension,
@@ -318,19 +313,14 @@ impl ConvBackend for Cube {}
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct ConvBackwardOp;
-
-impl<B: Backend + ConvBackend> Backward<B, 2> for ConvBackwardOp {
-    type State = (ConvPair<B>, ConvParams);
-
-    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 2>(ops, grads, |(xw, p), g| {
-            let g = B::conv_backward(xw, g, p);
-            [g.x, g.weight]
-        });
+crate::backward_op!(
+    ConvBackwardOp<2>: ConvBackend,
+    (ConvPair<B>, ConvParams),
+    |(xw, p), g| {
+        let g = B::conv_backward(xw, g, p);
+        [g.x, g.weight]
     }
-}
+);
 
 impl<B: Backend + ConvBackend, C: CheckpointStrategy> ConvBackend for Autodiff<B, C> {
     fn conv(ConvPair { x, weight }: ConvPair<Self>, p: ConvParams) -> FloatTensor<Self> {
@@ -363,7 +353,8 @@ impl<B: Backend + ConvBackend, C: CheckpointStrategy> ConvBackend for Autodiff<B
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::check::{check_finite_differences, host, max_rel, output_and_gradients};
+    use crate::check::on_cpu_backends;
+    use crate::check::{check_finite_differences, host, max_rel, output_and_gradients, pattern};
     use burn::tensor::{Device, Distribution, TensorData};
 
     /// Kernel, stride, padding, input size, batch.
@@ -448,15 +439,7 @@ pub(crate) mod tests {
         }
     }
 
-    #[test]
-    fn matches_burn_on_ndarray() {
-        check_against_burn(Device::ndarray().autodiff());
-    }
-
-    #[test]
-    fn matches_burn_on_flex() {
-        check_against_burn(Device::flex().autodiff());
-    }
+    on_cpu_backends!(check_against_burn: matches_burn_on_flex, matches_burn_on_ndarray);
 
     /// Central finite differences of `sum(conv(x, w) * up)` for each kind: the view
     /// encoder's map (3x3, stride 2, padding 1) on an even side, so the last row and column
@@ -474,16 +457,10 @@ pub(crate) mod tests {
                 ConvKind::Plain => [co, ci, k, k],
                 ConvKind::Transposed => [ci, co, k, k],
             };
-            let xs: Vec<f32> = (0..n * ci * h * w)
-                .map(|i| ((i * 37 % 11) as f32 - 5.0) / 5.0)
-                .collect();
-            let ws: Vec<f32> = (0..co * ci * k * k)
-                .map(|i| ((i * 53 % 13) as f32 - 6.0) / 6.0)
-                .collect();
+            let xs: Vec<f32> = pattern(n * ci * h * w, 37, 11, 5.0);
+            let ws: Vec<f32> = pattern(co * ci * k * k, 53, 13, 6.0);
             let [ho, wo] = p.output_size([h, w], [k, k]).expect("valid");
-            let ups: Vec<f32> = (0..n * co * ho * wo)
-                .map(|i| ((i * 29 % 7) as f32 - 3.0) / 3.0)
-                .collect();
+            let ups: Vec<f32> = pattern(n * co * ho * wo, 29, 7, 3.0);
             let tensor = |v: &[f32], shape: [usize; 4]| {
                 Tensor::<4>::from_data(TensorData::new(v.to_vec(), shape), &device)
             };

@@ -69,7 +69,7 @@ pub(crate) fn host_forward_then(
             im2col(&x[b * d.co * plane..(b + 1) * d.co * plane], col, d, p);
             // Y [C_out, P] = W [C_out, q] · col [q, P]
             let ob = &mut out.spare_capacity_mut()[b * d.ci * pp..(b + 1) * d.ci * pp];
-            matmul_uninit([d.ci, pp, q], ob, weight, [q, 1], col, [pp, 1]);
+            matmul_uninit::<true>([d.ci, pp, q], ob, weight, [q, 1], col, [pp, 1]);
             if let (Some(f), true) = (&epilogue, pp > 0) {
                 // SAFETY: `matmul_uninit` just wrote all `C_out·P` values of `ob`, and
                 // `MaybeUninit<f32>` has `f32`'s layout.
@@ -105,7 +105,7 @@ pub(crate) fn host_backward(
             dw.add(pp, gb, pp, col, pp);
             // dcol [q, P] = Wᵀ [q, C_out] · dY [C_out, P], into the column buffer (read
             // above).
-            matmul(
+            matmul::<true>(
                 [q, pp, d.ci],
                 col,
                 [pp, 1],

@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::gemm::{matmul_serial_uninit, matmul_uninit};
+use crate::gemm::matmul_uninit;
 
 /// Floats of the larger of one block's column matrix and its output (256 KiB): both stay in
 /// the core's L2 cache from the gather through the product to the bias and ReLU. Chosen by
@@ -77,7 +77,7 @@ pub fn conv3x3(
             let np = o.len() / co;
             col.resize(np * k, 0.0);
             im2col(x, [h, w], ci, bi * block, col);
-            matmul_serial_uninit([np, co, k], o, col, [k, 1], wm, [co, 1]);
+            matmul_uninit::<false>([np, co, k], o, col, [k, 1], wm, [co, 1]);
             // SAFETY: the product wrote all `np·co` values of `o`; `f32` and
             // `MaybeUninit<f32>` have one layout.
             let o =
@@ -135,7 +135,7 @@ pub fn conv3x3_input_gradient(
     // `wm` read as `[C_out, 9·C_in]`: element (o, r) at r·C_out + o. Written whole by the
     // product, never read before: no zeroing pass first.
     let mut z = Vec::with_capacity(p * k);
-    matmul_uninit(
+    matmul_uninit::<true>(
         [p, k, co],
         &mut z.spare_capacity_mut()[..p * k],
         dy,

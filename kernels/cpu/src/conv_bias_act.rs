@@ -28,12 +28,7 @@
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
 
-use burn::backend::autodiff::{
-    Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, Ops},
-};
+use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, TensorMetadata, backend_extension,
@@ -182,22 +177,17 @@ impl ConvBiasActBackend for Cube {}
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct ConvBiasActBackwardOp;
-
 /// The saved input, weight, bias (for its shape), output, convolution and `act`.
 type SavedState<B> = (ConvBias<B>, FloatTensor<B>, ConvParams, bool);
 
-impl<B: Backend + ConvBiasActBackend> Backward<B, 3> for ConvBiasActBackwardOp {
-    type State = SavedState<B>;
-
-    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 3>(ops, grads, |(xw, out, p, act), grad| {
-            let g = B::conv_bias_act_backward(xw, out, grad, p, act);
-            [g.x, g.weight, g.bias]
-        });
+crate::backward_op!(
+    ConvBiasActBackwardOp<3>: ConvBiasActBackend,
+    SavedState<B>,
+    |(xw, out, p, act), grad| {
+        let g = B::conv_bias_act_backward(xw, out, grad, p, act);
+        [g.x, g.weight, g.bias]
     }
-}
+);
 
 impl<B: Backend + ConvBiasActBackend, C: CheckpointStrategy> ConvBiasActBackend for Autodiff<B, C> {
     fn conv_bias_act(l: ConvBias<Self>, p: ConvParams, act: bool) -> FloatTensor<Self> {
@@ -237,8 +227,9 @@ impl<B: Backend + ConvBiasActBackend, C: CheckpointStrategy> ConvBiasActBackend 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::on_cpu_backends;
     use crate::check::{
-        check_finite_differences, compare_outputs, host, layer_output_and_gradients,
+        check_finite_differences, compare_outputs, host, layer_output_and_gradients, pattern,
     };
     use crate::constants::LEAKY_RELU_SLOPE;
     use crate::conv::tests::{Case, case_shapes};
@@ -335,15 +326,7 @@ mod tests {
         }
     }
 
-    #[test]
-    fn matches_burn_on_flex() {
-        check_against_burn(Device::flex().autodiff());
-    }
-
-    #[test]
-    fn matches_burn_on_ndarray() {
-        check_against_burn(Device::ndarray().autodiff());
-    }
+    on_cpu_backends!(check_against_burn: matches_burn_on_flex, matches_burn_on_ndarray);
 
     /// Central finite differences of `sum(layer(x, w, b) · up)` with the activation, for all
     /// three inputs, on the view encoder's index map (3x3, stride 2, padding 1) and the
@@ -368,15 +351,9 @@ mod tests {
                 ConvKind::Transposed => [ci, co, k, k],
             };
             let [ho, wo] = p.output_size([h, w], [k, k]).expect("valid");
-            let xs: Vec<f32> = (0..n * ci * h * w)
-                .map(|i| ((i * 37 % 11) as f32 - 5.0) / scale[0])
-                .collect();
-            let ws: Vec<f32> = (0..co * ci * k * k)
-                .map(|i| ((i * 53 % 13) as f32 - 6.0) / scale[1])
-                .collect();
-            let ups: Vec<f32> = (0..n * co * ho * wo)
-                .map(|i| ((i * 29 % 7) as f32 - 3.0) / 3.0)
-                .collect();
+            let xs: Vec<f32> = pattern(n * ci * h * w, 37, 11, scale[0]);
+            let ws: Vec<f32> = pattern(co * ci * k * k, 53, 13, scale[1]);
+            let ups: Vec<f32> = pattern(n * co * ho * wo, 29, 7, 3.0);
             let t4 = |v: &[f32], s: [usize; 4]| {
                 Tensor::<4>::from_data(TensorData::new(v.to_vec(), s), &device)
             };

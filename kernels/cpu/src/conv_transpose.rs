@@ -147,7 +147,7 @@ fn host_forward_blocked(
                 let col = &mut col[..q * n];
                 // col [q, n] = Wᵀ [q, C_in] · X[:, block] [C_in, n]; W is [C_in, q]
                 // row-major, the block's pixels are contiguous in every input plane.
-                matmul(
+                matmul::<true>(
                     [q, n, d.ci],
                     col,
                     [n, 1],

@@ -7,13 +7,14 @@ use std::mem::MaybeUninit;
 /// Work (multiply-adds) above which a product is split across rayon's threads.
 pub const PARALLEL_WORK: usize = 1 << 16;
 
-/// `dst[m×n] (+)= lhs[m×k] · rhs[k×n]` with explicit (row, column) strides, on rayon's
-/// threads when the work reaches [`PARALLEL_WORK`].
+/// `dst[m×n] (+)= lhs[m×k] · rhs[k×n]` with explicit (row, column) strides. With
+/// `PARALLEL`, on rayon's threads when the work reaches [`PARALLEL_WORK`]; without, on the
+/// calling thread only (for products that are already one task of a parallel loop).
 ///
 /// # Panics
 /// When a stride addresses past the end of its slice.
 #[allow(clippy::too_many_arguments)]
-pub fn matmul(
+pub fn matmul<const PARALLEL: bool>(
     mnk: [usize; 3],
     dst: &mut [f32],
     dst_strides: [usize; 2],
@@ -23,43 +24,8 @@ pub fn matmul(
     rhs: &[f32],
     rhs_strides: [usize; 2],
 ) {
-    product(
-        true,
-        mnk,
-        dst,
-        dst_strides,
-        accumulate,
-        lhs,
-        lhs_strides,
-        rhs,
-        rhs_strides,
-    );
-}
-
-/// [`matmul`] on the calling thread only: for products that are already one task of a
-/// parallel loop.
-#[allow(clippy::too_many_arguments)]
-pub fn matmul_serial(
-    mnk: [usize; 3],
-    dst: &mut [f32],
-    dst_strides: [usize; 2],
-    accumulate: bool,
-    lhs: &[f32],
-    lhs_strides: [usize; 2],
-    rhs: &[f32],
-    rhs_strides: [usize; 2],
-) {
-    product(
-        false,
-        mnk,
-        dst,
-        dst_strides,
-        accumulate,
-        lhs,
-        lhs_strides,
-        rhs,
-        rhs_strides,
-    );
+    let (d, l, r) = ((dst, dst_strides), (lhs, lhs_strides), (rhs, rhs_strides));
+    product(PARALLEL, mnk, d, accumulate, l, r)
 }
 
 /// [`matmul`] into a dense row-major `dst` of `m·n` values (strides `[n, 1]`) that need
@@ -69,36 +35,7 @@ pub fn matmul_serial(
 ///
 /// # Panics
 /// When `dst` does not have `m·n` values or a stride addresses past the end of its slice.
-pub fn matmul_uninit(
-    mnk: [usize; 3],
-    dst: &mut [MaybeUninit<f32>],
-    lhs: &[f32],
-    lhs_strides: [usize; 2],
-    rhs: &[f32],
-    rhs_strides: [usize; 2],
-) {
-    dense_uninit(true, mnk, dst, lhs, lhs_strides, rhs, rhs_strides);
-}
-
-/// [`matmul_uninit`] on the calling thread only (one task of a parallel loop).
-///
-/// # Panics
-/// As [`matmul_uninit`].
-pub fn matmul_serial_uninit(
-    mnk: [usize; 3],
-    dst: &mut [MaybeUninit<f32>],
-    lhs: &[f32],
-    lhs_strides: [usize; 2],
-    rhs: &[f32],
-    rhs_strides: [usize; 2],
-) {
-    dense_uninit(false, mnk, dst, lhs, lhs_strides, rhs, rhs_strides);
-}
-
-/// [`matmul_uninit`] and [`matmul_serial_uninit`]: the product into a dense `dst` of `m·n`
-/// values, on rayon's threads when `parallel`.
-fn dense_uninit(
-    parallel: bool,
+pub fn matmul_uninit<const PARALLEL: bool>(
     mnk: [usize; 3],
     dst: &mut [MaybeUninit<f32>],
     lhs: &[f32],
@@ -109,14 +46,11 @@ fn dense_uninit(
     let [m, n, _] = mnk;
     assert_eq!(dst.len(), m * n, "matmul_uninit: dst is not m x n");
     uninit_product(
-        parallel,
+        PARALLEL,
         mnk,
-        dst,
-        [n, 1],
-        lhs,
-        lhs_strides,
-        rhs,
-        rhs_strides,
+        (dst, [n, 1]),
+        (lhs, lhs_strides),
+        (rhs, rhs_strides),
     );
 }
 
@@ -138,42 +72,35 @@ pub fn matmul_into_uninit(
     uninit_product(
         true,
         mnk,
-        dst,
-        dst_strides,
-        lhs,
-        lhs_strides,
-        rhs,
-        rhs_strides,
+        (dst, dst_strides),
+        (lhs, lhs_strides),
+        (rhs, rhs_strides),
     );
 }
 
+/// A matrix operand: its values and its (row, column) strides.
+type Operand<'a> = (&'a [f32], [usize; 2]);
+
 /// The product into uninitialised `dst`, on rayon's threads when `parallel`.
-#[allow(clippy::too_many_arguments)]
 fn uninit_product(
     parallel: bool,
     mnk: [usize; 3],
-    dst: &mut [MaybeUninit<f32>],
-    dst_strides: [usize; 2],
-    lhs: &[f32],
-    lhs_strides: [usize; 2],
-    rhs: &[f32],
-    rhs_strides: [usize; 2],
+    (dst, dst_strides): (&mut [MaybeUninit<f32>], [usize; 2]),
+    (lhs, lhs_strides): Operand,
+    (rhs, rhs_strides): Operand,
 ) {
+    let dst = ((dst.as_mut_ptr().cast::<f32>(), dst.len()), dst_strides);
     // SAFETY: `f32` and `MaybeUninit<f32>` have one layout; `product_raw` writes the `m·n`
     // addressed values (inside `dst`, which it asserts) without reading them when
     // `accumulate` is false.
-    let (ptr, len) = (dst.as_mut_ptr().cast::<f32>(), dst.len());
     unsafe {
         product_raw(
             parallel,
             mnk,
-            (ptr, len),
-            dst_strides,
+            dst,
             false,
-            lhs,
-            lhs_strides,
-            rhs,
-            rhs_strides,
+            (lhs, lhs_strides),
+            (rhs, rhs_strides),
         )
     };
 }
@@ -226,7 +153,7 @@ impl GradientSum {
     pub fn add(&mut self, k: usize, lhs: &[f32], lhs_row: usize, rhs: &[f32], rhs_row: usize) {
         let (m, n) = (self.m, self.n);
         let dst_strides = if self.column_major { [1, m] } else { [n, 1] };
-        matmul(
+        matmul::<true>(
             [m, n, k],
             &mut self.sum,
             dst_strides,
@@ -262,32 +189,18 @@ impl GradientSum {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// The product into initialised `dst`, on rayon's threads when `parallel`.
 fn product(
     parallel: bool,
     mnk: [usize; 3],
-    dst: &mut [f32],
-    dst_strides: [usize; 2],
+    (dst, dst_strides): (&mut [f32], [usize; 2]),
     accumulate: bool,
-    lhs: &[f32],
-    lhs_strides: [usize; 2],
-    rhs: &[f32],
-    rhs_strides: [usize; 2],
+    lhs: Operand,
+    rhs: Operand,
 ) {
+    let dst = ((dst.as_mut_ptr(), dst.len()), dst_strides);
     // SAFETY: `dst` is an initialised, exclusively borrowed slice of `dst.len()` values.
-    unsafe {
-        product_raw(
-            parallel,
-            mnk,
-            (dst.as_mut_ptr(), dst.len()),
-            dst_strides,
-            accumulate,
-            lhs,
-            lhs_strides,
-            rhs,
-            rhs_strides,
-        )
-    }
+    unsafe { product_raw(parallel, mnk, dst, accumulate, lhs, rhs) }
 }
 
 /// The product on a raw `dst` of `len` values.
@@ -299,13 +212,10 @@ fn product(
 unsafe fn product_raw(
     parallel: bool,
     [m, n, k]: [usize; 3],
-    (dst, dst_len): (*mut f32, usize),
-    [dst_rs, dst_cs]: [usize; 2],
+    ((dst, dst_len), [dst_rs, dst_cs]): ((*mut f32, usize), [usize; 2]),
     accumulate: bool,
-    lhs: &[f32],
-    [lhs_rs, lhs_cs]: [usize; 2],
-    rhs: &[f32],
-    [rhs_rs, rhs_cs]: [usize; 2],
+    (lhs, [lhs_rs, lhs_cs]): Operand,
+    (rhs, [rhs_rs, rhs_cs]): Operand,
 ) {
     if m == 0 || n == 0 {
         return;
@@ -369,6 +279,7 @@ unsafe fn product_raw(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::pattern;
 
     /// The textbook triple loop, for `dst[m×n] = lhs[m×k] · rhs[k×n]` row-major.
     fn naive([m, n, k]: [usize; 3], lhs: &[f32], rhs: &[f32]) -> Vec<f32> {
@@ -389,18 +300,14 @@ mod tests {
         type Uninit =
             fn([usize; 3], &mut [MaybeUninit<f32>], &[f32], [usize; 2], &[f32], [usize; 2]);
         let products: [(&str, Uninit); 2] = [
-            ("matmul_uninit", matmul_uninit),
-            ("matmul_serial_uninit", matmul_serial_uninit),
+            ("matmul_uninit (parallel)", matmul_uninit::<true>),
+            ("matmul_uninit (serial)", matmul_uninit::<false>),
         ];
         for (name, product) in products {
             for mnk in [[3, 5, 4], [1, 1, 1], [4, 3, 0], [67, 45, 33]] {
                 let [m, n, k] = mnk;
-                let lhs: Vec<f32> = (0..m * k)
-                    .map(|i| ((i * 7 % 13) as f32 - 6.0) / 4.0)
-                    .collect();
-                let rhs: Vec<f32> = (0..k * n)
-                    .map(|i| ((i * 5 % 11) as f32 - 5.0) / 3.0)
-                    .collect();
+                let lhs: Vec<f32> = pattern(m * k, 7, 13, 4.0);
+                let rhs: Vec<f32> = pattern(k * n, 5, 11, 3.0);
                 let mut dst: Vec<f32> = Vec::with_capacity(m * n);
                 dst.spare_capacity_mut()
                     .iter_mut()
@@ -440,12 +347,8 @@ mod tests {
             [5, 70, 30],
             [67, 80, 40],
         ] {
-            let lhs: Vec<f32> = (0..m * k)
-                .map(|i| ((i * 7 % 13) as f32 - 6.0) / 4.0)
-                .collect();
-            let rhs: Vec<f32> = (0..n * k)
-                .map(|i| ((i * 5 % 11) as f32 - 5.0) / 3.0)
-                .collect();
+            let lhs: Vec<f32> = pattern(m * k, 7, 13, 4.0);
+            let rhs: Vec<f32> = pattern(n * k, 5, 11, 3.0);
             // Both layouts where n allows: the k_total given picks one.
             for k_total in [k, COLUMN_MAJOR_MIN_K] {
                 let mut sum = GradientSum::new(m, n, k_total);

@@ -30,12 +30,7 @@
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
 
-use burn::backend::autodiff::{
-    Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, Ops},
-};
+use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, TensorMetadata, backend_extension,
@@ -291,19 +286,14 @@ impl WeightNormBackend for Cube {}
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct WeightNormBackwardOp;
-
-impl<B: Backend + WeightNormBackend> Backward<B, 2> for WeightNormBackwardOp {
-    type State = (VG<B>, usize);
-
-    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 2>(ops, grads, |(vg, out_dim), grad| {
-            let d = B::weight_norm_backward(vg, grad, out_dim);
-            [d.v, d.g]
-        });
+crate::backward_op!(
+    WeightNormBackwardOp<2>: WeightNormBackend,
+    (VG<B>, usize),
+    |(vg, out_dim), grad| {
+        let d = B::weight_norm_backward(vg, grad, out_dim);
+        [d.v, d.g]
     }
-}
+);
 
 impl<B: Backend + WeightNormBackend, C: CheckpointStrategy> WeightNormBackend for Autodiff<B, C> {
     fn weight_norm(VG { v, g }: VG<Self>, out_dim: usize) -> FloatTensor<Self> {
@@ -337,6 +327,7 @@ impl<B: Backend + WeightNormBackend, C: CheckpointStrategy> WeightNormBackend fo
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::on_cpu_backends;
     use burn::tensor::{Device, Distribution, TensorData};
 
     use crate::check::{check_finite_differences, host, output_and_gradients};
@@ -378,15 +369,7 @@ mod tests {
         check(&device, [300, 500], 1);
     }
 
-    #[test]
-    fn matches_burn_on_flex() {
-        check_all(Device::flex().autodiff());
-    }
-
-    #[test]
-    fn matches_burn_on_ndarray() {
-        check_all(Device::ndarray().autodiff());
-    }
+    on_cpu_backends!(check_all: matches_burn_on_flex, matches_burn_on_ndarray);
 
     /// The trait's default bodies (what wgpu runs) against the host passes, values and
     /// gradients, on flex without autodiff.

@@ -28,7 +28,7 @@ use std::mem::MaybeUninit;
 
 use rayon::prelude::*;
 
-use crate::gemm::matmul_serial;
+use crate::gemm::matmul;
 use crate::simd::with_avx2;
 
 /// Floats of one thread's Winograd block of transformed input and output tiles (1 MiB):
@@ -379,7 +379,7 @@ fn winograd_tiles(
             });
         // M: [ξ, tile, C_out], one task per ξ.
         mm.par_chunks_mut(nt * co).enumerate().for_each(|(xi, mx)| {
-            matmul_serial(
+            matmul::<false>(
                 [nt, co, ci],
                 mx,
                 [co, 1],
@@ -428,7 +428,7 @@ fn winograd_tiles(
                     }
                     // M: [tile, ξ, C_out].
                     for xi in 0..n {
-                        matmul_serial(
+                        matmul::<false>(
                             [nt, co, ci],
                             &mut mm[xi * co..],
                             [n * co, 1],

@@ -30,12 +30,7 @@
 // burn-ndarray is deprecated in burn 0.22; the design keeps it alongside flex.
 #![allow(deprecated)]
 
-use burn::backend::autodiff::{
-    Autodiff,
-    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
-    grads::Gradients,
-    ops::{Backward, Ops},
-};
+use burn::backend::autodiff::{Autodiff, checkpoint::strategy::CheckpointStrategy};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     AutodiffBackend, Backend, Cube, ExtensionType, TensorMetadata, backend_extension,
@@ -279,19 +274,14 @@ impl WnLinearBackend for Cube {}
 // ---------------------------------------------------------------------------------------------
 // Autodiff: the handwritten backward.
 
-#[derive(Debug)]
-struct WnLinearBackwardOp;
-
-impl<B: Backend + WnLinearBackend> Backward<B, 3> for WnLinearBackwardOp {
-    type State = XVG<B>;
-
-    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 3>(ops, grads, |xvg, grad| {
-            let d = B::wn_linear_backward(xvg, grad);
-            [d.x, d.v, d.g]
-        });
+crate::backward_op!(
+    WnLinearBackwardOp<3>: WnLinearBackend,
+    XVG<B>,
+    |xvg, grad| {
+        let d = B::wn_linear_backward(xvg, grad);
+        [d.x, d.v, d.g]
     }
-}
+);
 
 impl<B: Backend + WnLinearBackend, C: CheckpointStrategy> WnLinearBackend for Autodiff<B, C> {
     fn wn_linear(XVG { x, v, g }: XVG<Self>) -> FloatTensor<Self> {
@@ -323,6 +313,7 @@ impl<B: Backend + WnLinearBackend, C: CheckpointStrategy> WnLinearBackend for Au
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::on_cpu_backends;
     use burn::tensor::module::linear;
     use burn::tensor::{Device, Distribution, TensorData};
 
@@ -354,15 +345,7 @@ mod tests {
         check(&device, [2, 9, 2 * ROWS_PER_TASK + 3]);
     }
 
-    #[test]
-    fn matches_the_composition_on_flex() {
-        check_all(Device::flex().autodiff());
-    }
-
-    #[test]
-    fn matches_the_composition_on_ndarray() {
-        check_all(Device::ndarray().autodiff());
-    }
+    on_cpu_backends!(check_all: matches_the_composition_on_flex, matches_the_composition_on_ndarray);
 
     /// The trait's default bodies (what wgpu runs) against the host passes, values and
     /// gradients, on flex without autodiff.
