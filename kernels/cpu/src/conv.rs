@@ -404,6 +404,24 @@ pub(crate) mod tests {
         (p, weight, [n, co, ho, wo])
     }
 
+    /// `case` of `kind` with random input, weight and output gradient on `device`, seeded
+    /// with `seed`: its parameters, the three tensors and the output's shape.
+    pub(crate) fn case_tensors(
+        kind: ConvKind,
+        case: Case,
+        seed: u64,
+        device: &Device,
+    ) -> (ConvParams, [Tensor<4>; 3], [usize; 4]) {
+        let (p, wshape, out) = case_shapes(kind, case);
+        let (_, _, _, [h, w], n) = case;
+        device.seed(seed);
+        let normal = Distribution::Normal(0.0, 1.0);
+        let x = Tensor::<4>::random([n, 3, h, w], normal, device);
+        let wt = Tensor::<4>::random(wshape, normal, device);
+        let up = Tensor::<4>::random(out, normal, device);
+        (p, [x, wt, up], out)
+    }
+
     /// Values and gradients against burn's own convolution of each kind (the reference
     /// twin).
     fn check_against_burn(device: Device) {
@@ -413,13 +431,7 @@ pub(crate) mod tests {
             .chain(TRANSPOSED.map(|c| (ConvKind::Transposed, c)))
             .enumerate()
         {
-            let (p, wshape, out) = case_shapes(kind, case);
-            let (_, _, _, [h, w], n) = case;
-            device.seed(i as u64);
-            let normal = Distribution::Normal(0.0, 1.0);
-            let x = Tensor::<4>::random([n, 3, h, w], normal, &device);
-            let wt = Tensor::<4>::random(wshape, normal, &device);
-            let up = Tensor::<4>::random(out, normal, &device);
+            let (p, [x, wt, up], out) = case_tensors(kind, case, i as u64, &device);
             let ours = output_and_gradients(&x, &wt, &up, |x, w| conv(x, w, p));
             let reference = output_and_gradients(&x, &wt, &up, |x, w| match kind {
                 ConvKind::Plain => burn::tensor::module::conv2d(x, w, None, p.options()),

@@ -232,7 +232,7 @@ mod tests {
         check_finite_differences, compare_outputs, host, layer_output_and_gradients, pattern,
     };
     use crate::constants::LEAKY_RELU_SLOPE;
-    use crate::conv::tests::{Case, case_shapes};
+    use crate::conv::tests::{Case, case_tensors};
     use crate::conv::{ConvKind, conv};
     use burn::tensor::{Device, Distribution, TensorData};
 
@@ -296,14 +296,9 @@ mod tests {
     /// reference twin.
     fn check_against_burn(device: Device) {
         for (i, (kind, case)) in CASES.into_iter().enumerate() {
-            let (p, wshape, out) = case_shapes(kind, case);
-            let (_, _, _, [h, w], n) = case;
-            device.seed(i as u64);
-            let normal = Distribution::Normal(0.0, 1.0);
-            let x = Tensor::<4>::random([n, 3, h, w], normal, &device);
-            let wt = Tensor::<4>::random(wshape, normal, &device);
-            let up = Tensor::<4>::random(out, normal, &device);
+            let (p, [x, wt, up], out) = case_tensors(kind, case, i as u64, &device);
             let [_, co, ho, wo] = out;
+            let normal = Distribution::Normal(0.0, 1.0);
             let untied = Tensor::<3>::random([co, ho, wo], normal, &device);
             let per_channel = Tensor::<1>::random([co], normal, &device);
             for act in [false, true] {
