@@ -12,7 +12,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{Criterion, criterion_group};
 use texavatars::camera::Camera;
 use texavatars::models::texavatars::NetConfig;
 
@@ -97,4 +97,9 @@ fn bench(c: &mut Criterion) {
 }
 
 criterion_group!(benches, bench);
-criterion_main!(benches);
+#[path = "common/mod.rs"]
+mod common;
+
+fn main() {
+    common::main_on_pool(benches);
+}

@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{Criterion, criterion_group};
 use texavatars::lift::{self, LiftMode, LiftParams, Topology};
 use texavatars::mesh::UvMesh;
 use texavatars::texel::FrameKind;
@@ -97,4 +97,9 @@ fn bench(c: &mut Criterion) {
 }
 
 criterion_group!(benches, bench);
-criterion_main!(benches);
+#[path = "common/mod.rs"]
+mod common;
+
+fn main() {
+    common::main_on_pool(benches);
+}

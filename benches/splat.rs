@@ -10,7 +10,7 @@
 
 use burn::backend::Dispatch;
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use criterion::{BenchmarkId, Criterion, criterion_group};
 use std::time::Duration;
 use texavatars::splat::{SplatBackend, SplatInputs, SplatParams, demo, sh};
 
@@ -241,4 +241,9 @@ fn bench_gpu_accumulation(c: &mut Criterion) {
 }
 
 criterion_group!(benches, bench_cpu_stages, bench, bench_gpu_accumulation);
-criterion_main!(benches);
+#[path = "common/mod.rs"]
+mod common;
+
+fn main() {
+    common::main_on_pool(benches);
+}

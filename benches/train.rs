@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use burn::train::TrainStep;
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{Criterion, criterion_group};
 use texavatars::data::{HeadBatcher, HeadDataset, Split};
 use texavatars::device::BackendKind;
 use texavatars::head::HeadAsset;
@@ -134,4 +134,9 @@ fn bench(c: &mut Criterion) {
 }
 
 criterion_group!(benches, bench);
-criterion_main!(benches);
+#[path = "common/mod.rs"]
+mod common;
+
+fn main() {
+    common::main_on_pool(benches);
+}

@@ -195,7 +195,7 @@ fn curve_plots(run: &Path, per_epoch: usize, report: &Path) -> Result<()> {
 }
 
 /// Runs the whole job; `progress` gets one line per stage and the stages' own lines.
-pub fn run(opts: &DemoOptions, progress: &mut dyn FnMut(&str)) -> Result<PathBuf> {
+pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Result<PathBuf> {
     let start = Instant::now();
     let data = opts.out.join("data");
     let run_dir = opts.out.join("run");

@@ -109,8 +109,14 @@ fn spread(n: usize, count: usize) -> Vec<usize> {
     (0..c).map(|i| i * n / c).collect()
 }
 
-/// Renders and scores the splits; `progress` receives one line per split.
-pub fn evaluate(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<EvalReport> {
+/// Renders and scores the splits; `progress` receives one line per split. Runs on rayon's
+/// pool ([`texavatars_cpu::threads::on_pool`]), as [`crate::train::train`].
+pub fn evaluate(opts: &EvalOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Result<EvalReport> {
+    texavatars_cpu::threads::on_pool(|| evaluate_here(opts, progress))
+}
+
+/// [`evaluate`] on the calling thread.
+fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<EvalReport> {
     let start = Instant::now();
     let device = opts.backend.device();
     let head = match &opts.head {

@@ -55,7 +55,7 @@ pub fn subject_data(study: &Study, out: &Path, name: &str) -> Result<PathBuf> {
 
 /// Generates every `synth` subject's benchmark that is not complete yet (the synthetic
 /// benchmark skips what is already there). Run it once before runs start in parallel.
-pub fn prepare(study: &Study, out: &Path, progress: &mut dyn FnMut(&str)) -> Result<()> {
+pub fn prepare(study: &Study, out: &Path, progress: &mut (dyn FnMut(&str) + Send)) -> Result<()> {
     let head = HeadAsset::embedded()?;
     for s in &study.config.subjects {
         if let Some(subject) = s.synth {
@@ -99,7 +99,7 @@ pub fn run_one(
     out: &Path,
     run: &RunSpec,
     backend: Option<BackendKind>,
-    progress: &mut dyn FnMut(&str),
+    progress: &mut (dyn FnMut(&str) + Send),
 ) -> Result<RunRecord> {
     if let Some(r) = finished(out, run) {
         return Ok(r);
@@ -180,7 +180,7 @@ fn evaluate_run(
     out: &Path,
     run: &RunSpec,
     backend: Option<BackendKind>,
-    progress: &mut dyn FnMut(&str),
+    progress: &mut (dyn FnMut(&str) + Send),
 ) -> Result<f64> {
     let t1 = Instant::now();
     let dir = run_dir(out, run);
@@ -213,7 +213,7 @@ pub fn reevaluate(
     out: &Path,
     run: &RunSpec,
     backend: Option<BackendKind>,
-    progress: &mut dyn FnMut(&str),
+    progress: &mut (dyn FnMut(&str) + Send),
 ) -> Result<Option<RunRecord>> {
     let Some(mut record) = finished(out, run) else {
         return Ok(None);

@@ -122,14 +122,26 @@ pub fn generate(
     config: &SynthConfig,
     head: &HeadAsset,
     out: &Path,
-    progress: &mut dyn FnMut(&str),
+    progress: &mut (dyn FnMut(&str) + Send),
 ) -> Result<Summary> {
     generate_with(config, head, out, false, progress)
 }
 
 /// [`generate`]; with `force`, a folder made with other settings or another head is cleared
 /// of the files a run writes and generated again instead of refused (see the module docs).
+/// Runs on rayon's pool ([`texavatars_cpu::threads::on_pool`]), as [`crate::train::train`].
 pub fn generate_with(
+    config: &SynthConfig,
+    head: &HeadAsset,
+    out: &Path,
+    force: bool,
+    progress: &mut (dyn FnMut(&str) + Send),
+) -> Result<Summary> {
+    texavatars_cpu::threads::on_pool(|| generate_here(config, head, out, force, progress))
+}
+
+/// [`generate_with`] on the calling thread.
+fn generate_here(
     config: &SynthConfig,
     head: &HeadAsset,
     out: &Path,

@@ -48,7 +48,15 @@ fn write(path: &Path, text: &str) -> Result<()> {
 /// count) and, when the VGG loss is on, the VGG16 weights must be installed (`texavatars
 /// weights install`). The net config's expression width is set to the head model's (the
 /// loader pads or truncates every frame's coefficients to it).
+///
+/// Runs on rayon's pool ([`texavatars_cpu::threads::on_pool`]), so a library caller gets
+/// the speed of the `texavatars` binary.
 pub fn train(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport> {
+    texavatars_cpu::threads::on_pool(|| train_here(config, options))
+}
+
+/// [`train`] on the calling thread.
+fn train_here(config: &TrainConfig, options: &TrainOptions) -> Result<TrainReport> {
     let mut config = config.clone();
     config.validate("train config")?;
     let head = find_head(options)?;

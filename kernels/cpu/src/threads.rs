@@ -12,9 +12,12 @@
 //! starts on them at once; only an idle worker needs waking, and the caller never sleeps, so
 //! the small decoders' forward and backward run faster (docs/performance.md).
 //!
-//! [`on_pool`] therefore runs a whole command on a pool thread (`cli::run`, every command but
-//! `view`, whose calling thread waits on its server for the whole session and would hold a
-//! worker away from the renders). The pool is rayon's global one (its size follows
+//! [`on_pool`] therefore runs a whole command on a pool thread (the app's `cli::run`, every
+//! command but `view`, whose calling thread waits on its server for the whole session and
+//! would hold a worker away from the renders), and the app's library entry points that run
+//! parallel work take the pool themselves (`train::train`, `train::gaussianavatars::train`,
+//! `eval::run::evaluate`, `synth::generate_with`; the criterion benches' `main`), so a
+//! library caller gets the binary's speed without knowing about the pool. The pool is rayon's global one (its size follows
 //! `RAYON_NUM_THREADS`, as before), built here with the main thread's stack size so that deep
 //! call chains behave as they did on the main thread.
 //!

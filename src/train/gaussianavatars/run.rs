@@ -58,7 +58,14 @@ pub struct GaTrainReport {
 /// writes `OUT/point_cloud/iteration_N/point_cloud.ply` (with `binding_0`) and the subject's
 /// `flame_param.npz` next to it: a folder `render`, `eval` and `export ply` read as any
 /// GaussianAvatars output.
+///
+/// Runs on rayon's pool ([`texavatars_cpu::threads::on_pool`]), as [`crate::train::train`].
 pub fn train(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainReport> {
+    texavatars_cpu::threads::on_pool(|| train_here(config, options))
+}
+
+/// [`train`] on the calling thread.
+fn train_here(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainReport> {
     config.validate("train config")?;
     let head = match &options.head {
         Some(h) => h.clone(),
