@@ -30,13 +30,13 @@
 # VGG term and scores without LPIPS, and the table says so.
 #
 # GPU_SH_SYNTH (a synth config) and GPU_SH_SIZE (WxH of `bench fps`) override the sizes; the
-# test of stage 5 (tests/train.rs) runs it on lavapipe with a 24 x 32 benchmark.
+# test of stage 5 (tests/train/main.rs) runs it on lavapipe with a 24 x 32 benchmark.
 #
 # GPU_SH_PROFILE=dev builds and measures in the dev profile instead of release (the test
 # build's artifacts; for the smoke test, not for figures).
 #
-# A GPU machine without Rust: GPU_SH_PACK=1 builds here and copies the four executables
-# (texavatars, the two parity test binaries, the training-step benchmark) into
+# A GPU machine without Rust: GPU_SH_PACK=1 builds here and copies the three executables
+# (texavatars, the parity test binary `gpu` (tests/gpu/), the training-step benchmark) into
 # $GPU_SH_OUT/bin, then stops; on the GPU machine, in a checkout of the same commit (for
 # configs/), GPU_SH_BIN=<that folder> runs stages 2-4 with them instead of building.
 set -euo pipefail
@@ -82,7 +82,7 @@ if [ -n "${GPU_SH_BIN:-}" ]; then
     profile="$profile (prebuilt, $bin)"
     stage "1/5 prebuilt executables in $bin"
     needed=(texavatars)
-    if want tests; then needed+=(gpu_kernels splat_gpu); fi
+    if want tests; then needed+=(gpu); fi
     if want step; then needed+=(train); fi
     for e in "${needed[@]}"; do
         [ -x "$bin/$e" ] || { echo "gpu.sh: GPU_SH_BIN=$bin has no executable $e" >&2; exit 1; }
@@ -94,12 +94,10 @@ else
     cargo build --profile "$profile" "${features[@]}" --bin texavatars 2>&1 | tail -n 3 >&2
     cp "$target/$profile_dir/texavatars" "$bin/texavatars"
     cargo test --profile "$profile" "${features[@]}" --no-run --message-format=json \
-        --test gpu_kernels --test splat_gpu >"$out/build_tests.json"
+        --test gpu >"$out/build_tests.json"
     cargo bench "${bench_profile[@]}" "${features[@]}" --no-run --message-format=json \
         --bench train >"$out/build_bench.json"
-    for e in gpu_kernels splat_gpu; do
-        cp "$(executable "$e" <"$out/build_tests.json")" "$bin/$e"
-    done
+    cp "$(executable gpu <"$out/build_tests.json")" "$bin/gpu"
     cp "$(executable train <"$out/build_bench.json")" "$bin/train"
     git describe --always --dirty >"$bin/commit" 2>/dev/null || echo unknown >"$bin/commit"
     if [ "${GPU_SH_PACK:-0}" = 1 ]; then
@@ -115,9 +113,7 @@ if want tests; then
     stage "2/5 GPU parity tests (wgpu)"
     : >"$out/tests.log"
     tests_ok=1
-    for e in gpu_kernels splat_gpu; do
-        "$bin/$e" >>"$out/tests.log" 2>&1 || tests_ok=0
-    done
+    "$bin/gpu" >>"$out/tests.log" 2>&1 || tests_ok=0
     if [ "$tests_ok" = 1 ]; then
         tests="passed ($(grep -h '^test result' "$out/tests.log" | awk '{s += $4} END {print s}') tests)"
     else
@@ -233,7 +229,7 @@ total=$(( $(date +%s) - t0 ))
     echo "| cargo profile | $profile |"
     echo "| GPU | $(nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null | head -n1 || echo unknown) |"
     echo "| Vulkan device | ${adapter:-unknown (vulkaninfo not installed)} |"
-    echo "| parity tests (gpu_kernels, splat_gpu) | $tests |"
+    echo "| parity tests (tests/gpu: gpu_kernels, splat_gpu, wgsl) | $tests |"
     for b in "${backends[@]}"; do
         if want fps; then echo "| bench fps, $net, $size, $b | ${fps[$b]} |"; fi
         if want step; then

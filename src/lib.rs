@@ -28,7 +28,7 @@
 //! # Layers
 //!
 //! Lowest first. A module uses modules of lower layers only, never one of its own layer or a
-//! higher one (`tests/layers.rs` checks every `crate::` path in `src/`):
+//! higher one (`tests/cpu/layers.rs` checks every `crate::` path in `src/`):
 //!
 //! 1. [`error`], [`cpu`], [`kernels`], [`alloc`], [`device`], `fusion`, [`gpu`]
 //! 2. [`io`], [`limits`], [`util`], [`camera`]

@@ -4,7 +4,8 @@
 //! folder made with other settings unless `--force`.
 //!
 //! Tests that go through `cli::run` pass `--max-memory 1G`, which holds for the rest of this
-//! test process (the flag is process-wide); every input here that should pass fits in 1 GiB.
+//! test process (the flag is process-wide, so these tests are a binary of their own); every
+//! input here that should pass fits in 1 GiB.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

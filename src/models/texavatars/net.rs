@@ -542,7 +542,7 @@ mod tests {
     use super::*;
 
     /// Sizes read from a file that would overflow are errors, not panics (found by
-    /// tests/fuzz.rs: `ConditionConfig::dim` and `view_input_res` used to overflow).
+    /// tests/cpu/fuzz.rs: `ConditionConfig::dim` and `view_input_res` used to overflow).
     #[test]
     fn overflowing_sizes_are_errors() {
         let mut c = NetConfig::paper();

@@ -7,15 +7,14 @@
 //! `scene/flame_gaussian_model.py` (`load_meshes`) reads them; the reader that checks them
 //! here is `HeadPose::load_npz`, itself checked against those names in `src/head/params.rs`.
 
-#[path = "common/cli.rs"]
-mod cli;
-
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use texavatars::data::{HeadDataset, Split};
 use texavatars::head::{HeadAsset, HeadPose, lbs};
 use texavatars::synth::{self, SynthConfig};
+
+use crate::cli;
 
 fn tiny_config() -> SynthConfig {
     SynthConfig {

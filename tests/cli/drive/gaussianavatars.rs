@@ -1,6 +1,6 @@
 //! A GaussianAvatars output folder built by hand in GaussianAvatars' own layout, driven,
-//! exported, rendered and scored by texavatars (a module of `tests/drive.rs`: one test
-//! binary less to build and link).
+//! exported, rendered and scored by texavatars (a module of `tests/cli/drive.rs`, in the
+//! `cli` test binary).
 //!
 //! The layout follows GaussianAvatars' code, not texavatars' writer:
 //! - `point_cloud.ply`: `GaussianModel.construct_list_of_attributes` / `save_ply`

@@ -3,13 +3,10 @@
 //! builds and steps, a stopped run resumes with its iteration count, the two learning rates
 //! reach their parameter groups, the frame order survives a resume.
 
-#[path = "train/gaussianavatars.rs"]
 mod gaussianavatars;
-#[path = "train/gpu_sh.rs"]
 mod gpu_sh;
-#[path = "train/study.rs"]
 mod study;
-#[path = "tiny/mod.rs"]
+#[path = "../tiny/mod.rs"]
 mod tiny;
 
 use std::path::{Path, PathBuf};

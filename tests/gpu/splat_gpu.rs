@@ -3,11 +3,10 @@
 //! reference, central finite differences, hostile inputs. Kernel-level tests (scan, sort,
 //! both gradient accumulation paths) are in `gpu_kernels.rs`.
 
-mod common;
-
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use common::{Scene, assert_close, fixture, fused, ndarray, random_scene, run};
 use texavatars::splat::{render, render_reference_tapped, render_tapped};
+
+use crate::common::{self, Scene, assert_close, fixture, fused, ndarray, random_scene, run};
 
 fn wgpu() -> Device {
     Device::wgpu(DeviceKind::DefaultDevice).autodiff()
@@ -96,7 +95,8 @@ fn gpu_loss(s: &Scene, device: &Device) -> f64 {
 
 #[test]
 fn wgpu_gradients_match_finite_differences() {
-    // Large, semi-transparent Gaussians: the loss is smooth in every input (see splat_cpu.rs).
+    // Large, semi-transparent Gaussians: the loss is smooth in every input (see
+    // tests/cpu/splat_cpu.rs).
     let mut s = random_scene(3, 12, 10, 5);
     for i in 0..3 {
         s.means[3 * i..3 * i + 3].copy_from_slice(&[

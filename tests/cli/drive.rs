@@ -2,12 +2,7 @@
 //! few training iterations), with each kind of motion, and their errors on bad motions; and
 //! `view`, the live browser viewer (`drive/view.rs`).
 
-#[path = "common/cli.rs"]
-mod cli;
-#[path = "drive/gaussianavatars.rs"]
 mod gaussianavatars;
-mod tiny;
-#[path = "drive/view.rs"]
 mod view;
 
 use std::path::{Path, PathBuf};
@@ -21,6 +16,8 @@ use texavatars::io;
 use texavatars::models::load_avatar;
 use texavatars::models::texavatars::constants::BACKGROUND;
 use texavatars::splat::{self, SplatParams};
+
+use crate::tiny;
 
 struct Fixture {
     data: PathBuf,

@@ -1,15 +1,13 @@
 //! `eval` end to end: a tiny synthetic set, a few training iterations, then the protocol's
 //! splits rendered and scored, with the files the report promises.
 
-#[path = "common/cli.rs"]
-mod cli;
-mod tiny;
-
 use std::path::PathBuf;
 
 use texavatars::data::Split;
 use texavatars::device::BackendKind;
 use texavatars::eval::run::{EvalOptions, evaluate};
+
+use crate::{cli, tiny};
 
 fn dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("texavatars-eval-{name}-{}", std::process::id()));

@@ -4,8 +4,6 @@
 //! Round trip, batching, burn's data loader, and every malformed input named by file and
 //! field.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -20,6 +18,8 @@ use texavatars::device::BackendKind;
 use texavatars::head::model::HeadModel;
 use texavatars::head::{HeadPose, lbs};
 use texavatars::io::npz::NpzOut;
+
+use crate::common;
 
 const W: u32 = 8;
 const H: u32 = 6;

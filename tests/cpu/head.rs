@@ -2,11 +2,11 @@
 //! joint regression, every joint's rotation, the kinematic chain, pose correctives,
 //! translation, static offsets; `.npz` round trips (both posedirs layouts); bad files.
 
-mod common;
-
 use texavatars::head::model::HeadModel;
 use texavatars::head::{HeadPose, lbs};
 use texavatars::io::npz::NpzOut;
+
+use crate::common;
 
 const FRAC_PI_2: f32 = std::f32::consts::FRAC_PI_2;
 

@@ -11,12 +11,8 @@
 //! - The scan and radix sort primitives, the intersection lists, and edge cases: N = 0,
 //!   M = 0, 1x1 images, sizes that are not multiples of 16, NaN/Inf/zero/indefinite
 //!   covariances, Gaussians behind or at the camera, non-contiguous inputs, 100k Gaussians.
-//! - [`wgsl`]: every kernel's WGSL passes naga's validation on an adapter without float
-//!   atomics.
-
-/// The generated WGSL of every kernel, validated without float atomics (no device needed).
-#[path = "gpu/wgsl.rs"]
-mod wgsl;
+//! - Beside this module, [`crate::wgsl`]: every kernel's WGSL passes naga's validation on an
+//!   adapter without float atomics.
 
 use std::path::{Path, PathBuf};
 

@@ -2,14 +2,15 @@
 //! fixtures of an independent reference, against each other on random scenes, against
 //! central finite differences, and under hostile inputs.
 
-mod common;
-
 use burn::tensor::Device;
 use burn::tensor::{Tensor, TensorData};
-use common::{Outcome, Scene, assert_close, fixture, fused, ndarray, random_scene, reference, run};
 use texavatars::splat::cpu;
 use texavatars::splat::{
     render, render_packed, render_reference, render_reference_tapped, render_tapped,
+};
+
+use crate::common::{
+    Outcome, Scene, assert_close, fixture, fused, ndarray, random_scene, reference, run,
 };
 
 #[test]

@@ -1,11 +1,11 @@
 //! The `splat` commands end to end: the PLY path against the fixtures, the demo, bad input.
 
-mod common;
-
 use std::path::PathBuf;
 use std::process::Command;
 
 use texavatars::io::npy;
+
+use crate::common;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_texavatars"))
