@@ -703,7 +703,7 @@ fn conv_transpose_wgpu_matches_host() {
 /// against the host op on flex: values and the gradients of input, weight and both bias
 /// kinds, at the view encoder's (stride 2) and the appearance decoder's (stride 1) maps.
 #[test]
-fn conv2d_bias_act_wgpu_matches_host() {
+fn conv_bias_act_wgpu_matches_host() {
     use texavatars::cpu::conv::ConvParams;
     use texavatars::cpu::conv_bias_act::conv_bias_act;
     let value = |i: usize, a: usize, m: usize, d: f32| ((i * a % m) as f32 - (m / 2) as f32) / d;
