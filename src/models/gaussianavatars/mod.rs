@@ -6,8 +6,9 @@
 //! `binding_0`, SH degree 0-3, and `flame_param.npz`) loaded, driven, rendered by
 //! texavatars' rasterizer and exported as world-space PLY files; [`model`], the stored
 //! Gaussians as a burn module placed by differentiable tensor ops (the lift's, with
-//! GaussianAvatars' frames). Training a GaussianAvatars model in texavatars (adaptive
-//! density control with binding inheritance, its objective and schedule) is not here yet.
+//! GaussianAvatars' frames). Training it (adaptive density control with binding
+//! inheritance, its objective and schedule, FLAME refinement) is
+//! [`crate::train::gaussianavatars`].
 
 pub mod binding;
 pub mod folder;

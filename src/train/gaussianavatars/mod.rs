@@ -36,9 +36,10 @@
 //! optimiser's moments following densification), [`checkpoint`] (a checkpoint's module) and
 //! [`run`] ([`train`], the folder's files).
 //!
-//! Not here: GaussianAvatars also fine-tunes the FLAME pose, translation and expression of
-//! every training frame (`flame_gaussian_model.py`, `training_setup`); texavatars keeps the
-//! tracked meshes fixed, as it does for its own model.
+//! FLAME refinement: as GaussianAvatars (`flame_gaussian_model.py`, `training_setup`), the
+//! pose, translation and expression of every training frame are fine-tuned with the
+//! Gaussians unless `flame_refinement` is off ([`config`]), through the refinement
+//! TexAvatars' training uses ([`crate::train::refine`]).
 
 pub mod checkpoint;
 pub mod config;
