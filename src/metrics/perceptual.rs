@@ -106,19 +106,18 @@ impl<B: Backend> Backward<B, 2> for VggBackwardOp {
     type State = (Arc<Saved>, CpuVgg, [usize; 3], B::Device);
 
     fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
-        autodiff::backward::<B, _, 2>(ops, grads, |(saved, net, [n, h, w], device), grad| {
-            let g = read_scalar::<B>(grad);
-            // An image whose gradient was not kept (untracked) gets zeros, which the graph
-            // drops.
-            [0, 1].map(|k| {
-                let d = net.0.backward(&saved, k, g);
-                floats::<B>(
-                    d.unwrap_or_else(|| vec![0.0; n * 3 * h * w]),
-                    &[n, 3, h, w],
-                    &device,
-                )
-            })
-        });
+        // Only the images whose gradient was kept (the tracked ones) get one: the reference
+        // image's would be a full-size zero tensor every step.
+        let grad = grads.consume::<B>(&ops.node);
+        let g = read_scalar::<B>(grad);
+        let (saved, net, [n, h, w], device) = ops.state;
+        for (k, node) in ops.parents.into_iter().enumerate() {
+            if let Some(node) = node
+                && let Some(d) = net.0.backward(&saved, k, g)
+            {
+                grads.register::<B>(node.id, floats::<B>(d, &[n, 3, h, w], &device));
+            }
+        }
     }
 }
 
