@@ -9,7 +9,8 @@
 //! 2. The avatar: [`texel`] (UV layout maps, sample grid, per-face frames) → [`lift`] (local
 //!    texel attributes to 3D Gaussians) → [`splat`] (the differentiable Gaussian
 //!    rasterizer) → [`models`] (TexAvatars' networks and GaussianAvatars' bound Gaussians,
-//!    side by side, both offering [`models::Drivable`]).
+//!    side by side, both offering [`models::Drivable`]); [`eta`] (the image expression code
+//!    computed from a capture's own images).
 //! 3. Learning and judging: [`metrics`] (losses and image metrics, with the pretrained VGG16
 //!    / AlexNet weights) → [`train`] (both models' objectives and training through burn's
 //!    learner) → [`eval`] (the paper's evaluation protocol, tables, panels, curves).
@@ -36,7 +37,7 @@
 //! 4. [`head`], [`texel`]
 //! 5. [`data`], [`lift`]
 //! 6. [`splat`], [`metrics`], [`synth`]
-//! 7. [`models`]
+//! 7. [`models`], [`eta`]
 //! 8. [`train`], [`drive`]
 //! 9. [`eval`]
 //! 10. [`study`], [`demo`], [`view`]
@@ -50,6 +51,7 @@ pub mod demo;
 pub mod device;
 pub mod drive;
 pub mod error;
+pub mod eta;
 pub mod eval;
 #[cfg(feature = "fusion")]
 pub mod fusion;

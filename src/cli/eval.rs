@@ -154,7 +154,7 @@ fn combine(dirs: &[PathBuf], out: &Path) -> anyhow::Result<()> {
 }
 
 /// Parses `NAME=PATH` of `--split`.
-fn parse_extra(s: &str) -> Result<(String, PathBuf), String> {
+pub(crate) fn parse_extra(s: &str) -> Result<(String, PathBuf), String> {
     let (name, path) = s
         .split_once('=')
         .ok_or_else(|| format!("{s:?}: expected NAME=PATH/transforms.json"))?;

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod demo;
+pub mod eta;
 pub mod eval;
 pub mod export;
 pub mod head;
@@ -39,6 +40,10 @@ pub enum Command {
     Bench(bench::BenchCommand),
     /// The main job: synthetic benchmark, CPU training, evaluation, report (out/demo).
     Demo(demo::DemoArgs),
+    /// Compute eta (the 128-value image expression code) for every timestep of an export
+    /// from its own images: face crops, VGG16 features, a projection fitted on the
+    /// training split; written as the eta/TTTTT.npy side files.
+    Eta(eta::EtaArgs),
     /// Render a trained avatar on the evaluation splits (novel view, novel expression,
     /// FREE) and score it: metrics.json, the paper's table, comparison images.
     Eval(eval::EvalArgs),
@@ -95,6 +100,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     texavatars_cpu::threads::on_pool(|| match command {
         Command::Bench(c) => bench::run(c),
         Command::Demo(a) => demo::run(a),
+        Command::Eta(a) => eta::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Export(c) => export::run(c),
         Command::Head(c) => head::run(c),

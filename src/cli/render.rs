@@ -141,6 +141,7 @@ impl DriveArgs {
             None => Identity::mean(&head.model),
         };
         let mut motion = Motion::load(&self.motion, &head.model, &head.meta, &identity)?;
+        warn_eta(&self.motion, motion.kind, &self.checkpoint)?;
         let first = match &self.frames {
             Some(s) => {
                 let r = parse_frames(s)?;
@@ -256,4 +257,39 @@ fn file_name(p: &Path) -> String {
         || p.display().to_string(),
         |f| f.to_string_lossy().into_owned(),
     )
+}
+
+/// Says where the motion's eta comes from, and warns when its image codes were made with
+/// another projection than the avatar's (`crate::eta::projection::run_mismatch`).
+fn warn_eta(
+    motion: &std::path::Path,
+    kind: MotionKind,
+    run: &std::path::Path,
+) -> anyhow::Result<()> {
+    use crate::data::eta::{EtaFiles, EtaSource};
+    let what = motion.display().to_string();
+    let sources: Vec<EtaSource> = match kind {
+        MotionKind::Dataset => {
+            let files = EtaFiles::scan(&crate::data::vhap::load_transforms(motion)?)?;
+            let line = files.describe(&what);
+            eprintln!(
+                "{}{line}",
+                if files.is_missing() { "warning: " } else { "" }
+            );
+            files.folders.into_values().flatten().collect()
+        }
+        MotionKind::Parameters if motion.is_dir() => {
+            let dir = if motion.join("flame_param").is_dir() {
+                motion.join("eta")
+            } else {
+                motion.join("../eta")
+            };
+            EtaSource::read(&dir)?.into_iter().collect()
+        }
+        _ => Vec::new(),
+    };
+    if let Some(w) = crate::eta::projection::run_mismatch(&sources, run, &what) {
+        eprintln!("{w}");
+    }
+    Ok(())
 }

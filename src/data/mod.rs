@@ -2,6 +2,7 @@
 
 pub mod batch;
 pub mod dataset;
+pub mod eta;
 pub mod identity;
 pub mod refined;
 pub mod split;
@@ -17,3 +18,14 @@ pub use dataset::{Conditioning, HeadDataset, HeadItem};
 pub use identity::Identity;
 pub use split::Split;
 pub use validate::PathPolicy;
+
+/// The head a dataset was made with: `data/../head/head.npz` when present (a
+/// `texavatars synth` output), else the embedded default.
+pub fn head_for(data: &std::path::Path) -> crate::error::Result<crate::head::HeadAsset> {
+    let npz = data.join("../head/head.npz");
+    if npz.exists() {
+        crate::head::HeadAsset::load(&npz, None)
+    } else {
+        crate::head::HeadAsset::embedded()
+    }
+}

@@ -15,7 +15,7 @@
 //! naming them, with the render's PSNR).
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -89,16 +89,7 @@ pub struct EvalReport {
     pub seconds: f64,
 }
 
-/// The head a dataset was made with: `data/../head/head.npz` when present (a
-/// `texavatars synth` output), else the embedded default.
-pub fn head_for(data: &Path) -> Result<HeadAsset> {
-    let npz = data.join("../head/head.npz");
-    if npz.exists() {
-        HeadAsset::load(&npz, None)
-    } else {
-        HeadAsset::embedded()
-    }
-}
+pub use crate::data::head_for;
 
 /// Evenly spread `count` indices of `0..n`.
 fn spread(n: usize, count: usize) -> Vec<usize> {
@@ -189,6 +180,17 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
             checked.timesteps,
             t0.elapsed().as_secs_f64()
         ));
+        let eta = crate::data::eta::EtaFiles::scan(ds.frames())?;
+        let line = eta.describe(split);
+        progress(&if eta.is_missing() {
+            format!("warning: {line}")
+        } else {
+            line
+        });
+        let sources = eta.folders.values().flatten();
+        if let Some(w) = crate::eta::projection::run_mismatch(sources, &opts.run, split) {
+            progress(&w);
+        }
         datasets.push(ds);
     }
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;

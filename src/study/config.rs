@@ -7,8 +7,9 @@
 //!   "gaussianavatars": "train_gaussianavatars.json",
 //!   "iterations": 1500,
 //!   "seeds": [0, 1],
-//!   "variants": ["full", "no-global-uv", "no-jacobian", "no-eta", "no-vgg",
+//!   "variants": ["full", "no-global-uv", "no-jacobian", "no-eta", "image-eta", "no-vgg",
 //!                "no-flame-refinement", "gaussianavatars"],
+//!   "every_seed": ["image-eta", "no-eta"],
 //!   "eval": { "stride": 3, "lpips": true, "panels": 4 }
 //! }
 //! ```
@@ -17,7 +18,9 @@
 //! benchmark's subject of that number, generated into `OUT/data/NAME` (`synth` config:
 //! `synth_config`, default the benchmark's defaults); a `data` subject is a VHAP export's
 //! split folder. The full method runs once per seed, every other variant with the first
-//! seed. `iterations`, when given, replaces both training configs' (the checkpoint interval
+//! seed (and those of `every_seed` once per seed too). `image-eta` trains the full method on
+//! a copy of the subject's data (`OUT/data/NAME.image-eta/`, files hard-linked) whose eta
+//! files are computed from the images (`texavatars eta`, [`crate::eta`]). `iterations`, when given, replaces both training configs' (the checkpoint interval
 //! is capped to it).
 
 use std::path::{Path, PathBuf};
@@ -52,6 +55,9 @@ pub enum Variant {
     NoGlobalUv,
     NoJacobian,
     NoEta,
+    /// The full method with eta computed from the subject's own images (`texavatars eta`)
+    /// instead of the data's eta files.
+    ImageEta,
     NoVgg,
     NoFlameRefinement,
     Gaussianavatars,
@@ -59,11 +65,12 @@ pub enum Variant {
 
 impl Variant {
     /// Every variant, in the tables' order.
-    pub const ALL: [Variant; 7] = [
+    pub const ALL: [Variant; 8] = [
         Variant::Full,
         Variant::NoGlobalUv,
         Variant::NoJacobian,
         Variant::NoEta,
+        Variant::ImageEta,
         Variant::NoVgg,
         Variant::NoFlameRefinement,
         Variant::Gaussianavatars,
@@ -76,6 +83,7 @@ impl Variant {
             Variant::NoGlobalUv => "no-global-uv",
             Variant::NoJacobian => "no-jacobian",
             Variant::NoEta => "no-eta",
+            Variant::ImageEta => "image-eta",
             Variant::NoVgg => "no-vgg",
             Variant::NoFlameRefinement => "no-flame-refinement",
             Variant::Gaussianavatars => "gaussianavatars",
@@ -89,6 +97,7 @@ impl Variant {
             Variant::NoGlobalUv => "w/o Global UV",
             Variant::NoJacobian => "w/o Jacobian",
             Variant::NoEta => "w/o eta",
+            Variant::ImageEta => "Ours (image eta)",
             Variant::NoVgg => "w/o VGG",
             Variant::NoFlameRefinement => "w/o FLAME refinement",
             Variant::Gaussianavatars => "GaussianAvatars",
@@ -99,7 +108,7 @@ impl Variant {
     pub fn ablations(self) -> Option<Ablations> {
         let mut a = Ablations::default();
         match self {
-            Variant::Full => {}
+            Variant::Full | Variant::ImageEta => {}
             Variant::NoGlobalUv => a.global_uv = false,
             Variant::NoJacobian => a.jacobian = false,
             Variant::NoEta => a.eta = false,
@@ -165,6 +174,9 @@ pub struct StudyConfig {
     /// Seeds of the full method (the first also seeds every other variant).
     pub seeds: Vec<u64>,
     pub variants: Vec<Variant>,
+    /// Variants besides the full method that also run once per seed.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub every_seed: Vec<Variant>,
     #[serde(default)]
     pub eval: StudyEval,
 }
@@ -309,7 +321,7 @@ impl Study {
         let mut runs = Vec::new();
         for s in &c.subjects {
             for &v in &c.variants {
-                let seeds: &[u64] = if v == Variant::Full {
+                let seeds: &[u64] = if v == Variant::Full || c.every_seed.contains(&v) {
                     &c.seeds
                 } else {
                     &c.seeds[..1]
@@ -372,7 +384,8 @@ mod tests {
                         a.flame_refinement != full.flame_refinement,
                     ];
                     let n = differs.iter().filter(|d| **d).count();
-                    assert_eq!(n, usize::from(v != Variant::Full), "{v:?}");
+                    let same = matches!(v, Variant::Full | Variant::ImageEta);
+                    assert_eq!(n, usize::from(!same), "{v:?}");
                 }
                 None => assert_eq!(v, Variant::Gaussianavatars),
             }

@@ -187,7 +187,7 @@ fn rows(study: &Study, runs: &[RunScores]) -> Vec<Row> {
     let seeds = &study.config.seeds;
     for &v in &study.config.variants {
         let mut variants: Vec<(Option<u64>, String)> = vec![(None, v.label().to_string())];
-        if v == Variant::Full && seeds.len() > 1 {
+        if (v == Variant::Full || study.config.every_seed.contains(&v)) && seeds.len() > 1 {
             variants.extend(
                 seeds
                     .iter()
@@ -373,6 +373,7 @@ fn color(v: Variant) -> [u8; 3] {
         Variant::NoGlobalUv => [255, 127, 14],
         Variant::NoJacobian => [44, 160, 44],
         Variant::NoEta => [214, 39, 40],
+        Variant::ImageEta => [23, 190, 207],
         Variant::NoVgg => [148, 103, 189],
         Variant::NoFlameRefinement => [140, 86, 75],
         Variant::Gaussianavatars => [127, 127, 127],

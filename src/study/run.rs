@@ -53,8 +53,101 @@ pub fn subject_data(study: &Study, out: &Path, name: &str) -> Result<PathBuf> {
     })
 }
 
+/// The split folder `run` trains and is evaluated on: the subject's
+/// ([`subject_data`]), or for [`Variant::ImageEta`] the same folder in the subject's
+/// image-eta copy ([`image_eta_root`]).
+pub fn run_data(study: &Study, out: &Path, run: &RunSpec) -> Result<PathBuf> {
+    let data = subject_data(study, out, &run.subject)?;
+    if run.variant != Variant::ImageEta {
+        return Ok(data);
+    }
+    let leaf = data.file_name().unwrap_or_default();
+    Ok(image_eta_root(out, &run.subject).join(leaf))
+}
+
+/// The image-eta copy of subject `name`'s export: `OUT/data/NAME.image-eta/`, a copy of the
+/// folder that holds its split folder (files hard-linked where the file system allows),
+/// without its `eta/` folders, whose codes `texavatars eta` then computes from the images.
+pub fn image_eta_root(out: &Path, name: &str) -> PathBuf {
+    out.join("data").join(format!("{name}.image-eta"))
+}
+
+/// The marker of a finished image-eta copy (the `eta` report).
+const IMAGE_ETA_DONE: &str = "image-eta.json";
+
+/// Copies `src` into `dst` (hard links, else copies), leaving out folders named `eta` and a
+/// fitted projection; what exists in `dst` already is kept.
+fn mirror(src: &Path, dst: &Path) -> Result<()> {
+    std::fs::create_dir_all(dst).map_err(|e| Error::io(dst, e))?;
+    for entry in std::fs::read_dir(src).map_err(|e| Error::io(src, e))? {
+        let entry = entry.map_err(|e| Error::io(src, e))?;
+        let name = entry.file_name();
+        let (from, to) = (entry.path(), dst.join(&name));
+        let kind = entry.file_type().map_err(|e| Error::io(&from, e))?;
+        if kind.is_dir() {
+            if name != "eta" {
+                mirror(&from, &to)?;
+            }
+        } else if name != crate::eta::projection::FILE_NAME
+            && !to.exists()
+            && std::fs::hard_link(&from, &to).is_err()
+        {
+            std::fs::copy(&from, &to).map_err(|e| Error::io(&to, e))?;
+        }
+    }
+    Ok(())
+}
+
+/// Makes subject `name`'s image-eta copy (see [`image_eta_root`]) unless it is finished.
+fn prepare_image_eta(
+    study: &Study,
+    out: &Path,
+    name: &str,
+    extractor: &mut Option<crate::eta::Extractor>,
+    progress: &mut (dyn FnMut(&str) + Send),
+) -> Result<()> {
+    let root = image_eta_root(out, name);
+    if root.join(IMAGE_ETA_DONE).is_file() {
+        return Ok(());
+    }
+    let data = subject_data(study, out, name)?;
+    let parent = data.parent().unwrap_or(Path::new("."));
+    mirror(parent, &root)?;
+    if extractor.is_none() {
+        *extractor = Some(crate::eta::Extractor::load(&BackendKind::Flex.device())?);
+    }
+    let leaf = data.file_name().unwrap_or_default();
+    let mut opts = crate::eta::EtaOptions::new(&root.join(leaf));
+    opts.force = true;
+    let ex = extractor.as_ref().expect("loaded above");
+    let r = crate::eta::compute(&opts, ex, &mut |l| {
+        progress(&format!("data {name}.image-eta: {l}"))
+    })?;
+    let record = serde_json::json!({
+        "projection": r.projection,
+        "projection_id": r.projection_id,
+        "rank": r.rank,
+        "cameras": r.cameras,
+        "timesteps": r.timesteps,
+        "written": r.written,
+        "seconds": r.seconds,
+    });
+    let path = root.join(IMAGE_ETA_DONE);
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&record).expect("serialises") + "\n",
+    )
+    .map_err(|e| Error::io(&path, e))?;
+    progress(&format!(
+        "data {name}.image-eta: {} eta codes from cameras {:?} ({} components) in {:.1} s",
+        r.written, r.cameras, r.rank, r.seconds
+    ));
+    Ok(())
+}
+
 /// Generates every `synth` subject's benchmark that is not complete yet (the synthetic
-/// benchmark skips what is already there). Run it once before runs start in parallel.
+/// benchmark skips what is already there), and the image-eta copies when the study has
+/// that variant. Run it once before runs start in parallel.
 pub fn prepare(study: &Study, out: &Path, progress: &mut (dyn FnMut(&str) + Send)) -> Result<()> {
     let head = HeadAsset::embedded()?;
     for s in &study.config.subjects {
@@ -83,6 +176,12 @@ pub fn prepare(study: &Study, out: &Path, progress: &mut (dyn FnMut(&str) + Send
             ));
         }
     }
+    if study.config.variants.contains(&Variant::ImageEta) {
+        let mut extractor = None;
+        for s in &study.config.subjects {
+            prepare_image_eta(study, out, &s.name, &mut extractor, progress)?;
+        }
+    }
     Ok(())
 }
 
@@ -105,7 +204,15 @@ pub fn run_one(
         return Ok(r);
     }
     let dir = run_dir(out, run);
-    let data = subject_data(study, out, &run.subject)?;
+    let data = run_data(study, out, run)?;
+    let eta_done = image_eta_root(out, &run.subject).join(IMAGE_ETA_DONE);
+    if run.variant == Variant::ImageEta && !eta_done.is_file() {
+        return Err(Error::invalid(
+            eta_done.display().to_string(),
+            "file",
+            "missing: the image-eta copy is not finished; run `texavatars study --prepare` (or the whole study) first",
+        ));
+    }
     if !data.join(Split::Train.file_name()).is_file() {
         return Err(Error::invalid(
             data.display().to_string(),
@@ -186,7 +293,7 @@ fn evaluate_run(
     let dir = run_dir(out, run);
     let e = &study.config.eval;
     let opts = EvalOptions {
-        data: subject_data(study, out, &run.subject)?,
+        data: run_data(study, out, run)?,
         run: dir.join("train"),
         out: dir.join("eval"),
         splits: vec![Split::Val, Split::Test, Split::Free],
@@ -375,5 +482,42 @@ mod tests {
         assert_eq!(shell_quote("a b"), "'a b'");
         assert_eq!(shell_quote("it's"), "'it'\\''s'");
         assert_eq!(shell_quote(""), "''");
+    }
+
+    #[test]
+    fn the_image_eta_copy_leaves_out_eta_folders_and_projections() {
+        let dir = std::env::temp_dir().join(format!("texavatars-mirror-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let src = dir.join("src");
+        for f in [
+            "union/transforms_train.json",
+            "seq/flame_param/00000.npz",
+            "seq/eta/00000.npy",
+        ] {
+            let p = src.join(f);
+            std::fs::create_dir_all(p.parent().expect("parent")).expect("mkdir");
+            std::fs::write(&p, f).expect("write");
+        }
+        std::fs::write(
+            src.join("union").join(crate::eta::projection::FILE_NAME),
+            "p",
+        )
+        .expect("write");
+        let dst = dir.join("dst");
+        mirror(&src, &dst).expect("mirror");
+        assert_eq!(
+            std::fs::read_to_string(dst.join("seq/flame_param/00000.npz")).expect("copied"),
+            "seq/flame_param/00000.npz"
+        );
+        assert!(dst.join("union/transforms_train.json").is_file());
+        assert!(!dst.join("seq/eta").exists());
+        assert!(
+            !dst.join("union")
+                .join(crate::eta::projection::FILE_NAME)
+                .exists()
+        );
+        // Again: what is there is kept.
+        mirror(&src, &dst).expect("again");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 pub use crate::models::texavatars::files;
 
 /// What `train` writes into its output folder, removed by [`TrainOptions::force`].
-pub const OWNED: [&str; 10] = [
+pub const OWNED: [&str; 11] = [
     files::CONFIG,
     crate::data::refined::REFINED_NPZ,
     crate::data::refined::REFINED_INDEX,
@@ -22,6 +22,7 @@ pub const OWNED: [&str; 10] = [
     files::AVATAR,
     files::CHECKPOINTS,
     files::IDENTITY,
+    crate::eta::projection::FILE_NAME,
     "train",
     "valid",
     "experiment.log",

@@ -30,10 +30,12 @@ pub fn open_frames(
         ));
     }
     let checked = train_set.check_files()?;
+    crate::data::eta::announce(train_set.frames(), Split::Train.name())?;
     let val_file = options.data.join(Split::Val.file_name());
     let val_set = if val_frames > 0 && val_file.is_file() {
         let v = HeadDataset::open_with(&options.data, Split::Val, model, options.paths)?;
         v.check_files()?;
+        crate::data::eta::announce(v.frames(), Split::Val.name())?;
         Some(Arc::new(v))
     } else {
         if val_frames > 0 {

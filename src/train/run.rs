@@ -149,6 +149,13 @@ fn train_here(config: &TrainConfig, options: &TrainOptions) -> Result<TrainRepor
     train_set
         .identity()
         .save(&head.model, &out.join(files::IDENTITY))?;
+    // The eta projection of the training codes, for coding captures that drive the avatar.
+    if let Some(p) = crate::eta::projection::copy_for_run(train_set.frames(), out)? {
+        eprintln!(
+            "train: the eta projection is saved with the run: {}",
+            p.display()
+        );
+    }
     write(
         &out.join(files::AVATAR_CONFIG),
         &(serde_json::to_string_pretty(&avatar_config).expect("serialises") + "\n"),

@@ -28,3 +28,15 @@ pub fn clear_matching(dir: &Path, owns: &dyn Fn(&str) -> bool) -> Result<usize> 
     }
     Ok(n)
 }
+
+/// Writes `bytes` to `path` through a temporary file beside it and a rename, so that a
+/// reader never sees a half-written file and an interrupted write leaves the old one.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.partial"));
+    std::fs::write(&tmp, bytes).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}

@@ -8,9 +8,12 @@
 mod cli;
 #[path = "../common/mod.rs"]
 mod common;
+#[path = "../tiny/mod.rs"]
+mod tiny;
 
 mod data;
 mod docs;
+mod eta;
 mod fuzz;
 mod head;
 mod head_default;

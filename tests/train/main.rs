@@ -612,6 +612,11 @@ fn train_command_runs_and_resumes() {
     };
     let (stdout, stderr) = run(false);
     assert!(stdout.contains("trained iterations 0..20"), "{stdout}");
+    // Where eta comes from, per split: the benchmark's side files.
+    for split in ["train", "val"] {
+        let line = format!("eta ({split}): side files without eta/source.json for");
+        assert!(stderr.contains(&line), "{line}: {stderr}");
+    }
     // Progress lines with every term, and a validation line per checkpoint.
     assert!(stderr.contains("train  it 20/20"), "{stderr}");
     assert!(stderr.contains("valid  it 10"), "{stderr}");
