@@ -12,7 +12,8 @@ use crate::eta::{EtaOptions, Extractor, compute};
 pub struct EtaArgs {
     /// The export's root (`transforms_{train,val,test}.json`): every split present is coded,
     /// and the projection is fitted on its training split and saved there as
-    /// `eta_projection.safetensors`.
+    /// `eta_projection.safetensors`. A single sequence's export (`transforms.json`, e.g. a
+    /// FREE sequence) is coded with `--projection`.
     #[arg(long)]
     pub data: PathBuf,
     /// An extra split to code, NAME=PATH (a `transforms*.json`), e.g. a FREE sequence's

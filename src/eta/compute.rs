@@ -23,7 +23,8 @@ pub const CROP: usize = 128;
 #[derive(Clone, Debug)]
 pub struct EtaOptions {
     /// The export: `transforms_{train,val,test}.json` (and `transforms_free.json`) at its
-    /// root; each present split is coded.
+    /// root, each present split coded; else a single sequence's `transforms.json` (which
+    /// needs `projection`).
     pub data: PathBuf,
     /// More splits to code, `(name, transforms file)` (e.g. a FREE sequence's export).
     pub splits: Vec<(String, PathBuf)>,
@@ -115,6 +116,11 @@ fn compute_here(
         .map(|s| (s.name().to_string(), opts.data.join(s.file_name())))
         .filter(|(_, p)| p.exists())
         .collect();
+    // A single sequence's export (a FREE sequence): its `transforms.json`.
+    let single = opts.data.join("transforms.json");
+    if named.is_empty() && single.is_file() {
+        named.push(("transforms".to_string(), single));
+    }
     for (name, path) in &opts.splits {
         if named.iter().any(|(n, _)| n == name) {
             return Err(Error::invalid(
@@ -129,7 +135,7 @@ fn compute_here(
         return Err(Error::invalid(
             opts.data.display().to_string(),
             "transforms_*.json",
-            "no split found (transforms_train.json, _val, _test, _free); is this an export's root?",
+            "no split found (transforms_train.json, _val, _test, _free, or a sequence's transforms.json); is this an export's root?",
         ));
     }
     let sets: Vec<(String, HeadDataset)> = named

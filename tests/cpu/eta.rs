@@ -283,6 +283,18 @@ fn eta_codes_every_timestep_with_a_projection_fitted_on_train_only() {
         codes[0],
         "the same projection gives the same codes"
     );
+
+    // A single sequence's export (the FREE sequence's own transforms.json) takes the
+    // training export's projection; it cannot fit one.
+    let free_export = data.parent().expect("root").join("free");
+    let e = compute(&opts(&free_export), &ex, &mut |_| {}).expect_err("no training split");
+    assert!(e.to_string().contains("--projection"), "{e}");
+    let mut single = opts(&free_export);
+    single.projection = Some(data.join(FILE_NAME));
+    single.force = true;
+    let coded = compute(&single, &ex, &mut |_| {}).expect("free export");
+    assert_eq!(coded.timesteps["transforms"], free.len());
+    assert_eq!(coded.projection_id, r.projection_id);
     let _ = std::fs::remove_dir_all(data.parent().expect("root"));
 }
 
