@@ -398,21 +398,29 @@ fn face_crop(set: &HeadDataset, index: usize, size: usize) -> Result<Vec<f32>> {
 /// global rotation) and the camera's viewing direction reversed (the optical axis pointing
 /// back at the camera).
 pub fn frontal_camera(set: &HeadDataset) -> Result<usize> {
+    // Up to 16 frames per camera, spread over its frames (the per-timestep meshes are
+    // cached).
+    let mut by_camera: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for (i, f) in set.frames().iter().enumerate() {
+        by_camera.entry(f.camera_index).or_default().push(i);
+    }
     let mut score: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
-    let n = set.len();
-    // About 16 frames per camera are plenty; the per-timestep meshes are cached.
-    let stride = (n / 512).max(1);
-    for i in (0..n).step_by(stride) {
-        let f = &set.frames()[i];
-        let c = set.conditioning(i)?;
-        let rot = Quat::from_scaled_axis(Vec3::new(c.pose[0], c.pose[1], c.pose[2]));
-        let forward = rot * Vec3::Z;
-        // OpenCV world-to-camera: the optical axis in world space is the rotation's third row.
-        let r = f.camera.world_to_camera[2];
-        let axis = Vec3::new(r[0], r[1], r[2]).normalize_or_zero();
-        let e = score.entry(f.camera_index).or_insert((0.0, 0));
-        e.0 += f64::from(-forward.dot(axis));
-        e.1 += 1;
+    for (camera, frames) in &by_camera {
+        let take = frames.len().min(16);
+        for k in 0..take {
+            let i = frames[k * frames.len() / take];
+            let f = &set.frames()[i];
+            let c = set.conditioning(i)?;
+            let rot = Quat::from_scaled_axis(Vec3::new(c.pose[0], c.pose[1], c.pose[2]));
+            let forward = rot * Vec3::Z;
+            // OpenCV world-to-camera: the optical axis in world space is the rotation's
+            // third row.
+            let r = f.camera.world_to_camera[2];
+            let axis = Vec3::new(r[0], r[1], r[2]).normalize_or_zero();
+            let e = score.entry(*camera).or_insert((0.0, 0));
+            e.0 += f64::from(-forward.dot(axis));
+            e.1 += 1;
+        }
     }
     score
         .into_iter()
