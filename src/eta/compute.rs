@@ -299,7 +299,13 @@ fn compute_here(
                 rank: 0,
                 explained: Vec::new(),
             };
-            let p = Projection::fit(&train_feats, meta, &fitted_on.display().to_string())?;
+            let blocks: Vec<usize> = cameras.iter().flat_map(|_| features::blocks()).collect();
+            let p = Projection::fit(
+                &train_feats,
+                &blocks,
+                meta,
+                &fitted_on.display().to_string(),
+            )?;
             let bytes = p.to_bytes()?;
             crate::util::files::write_atomic(&projection_path, &bytes)?;
             progress(&format!(

@@ -29,10 +29,15 @@ pub const TAPS: [usize; 3] = [1, 2, 3];
 /// The taps' names, for records.
 pub const NETWORK: &str = "vgg16 relu2_2+relu3_3+relu4_3, 4x4 average grid";
 
+/// Values per image of each tap, in order (the projection scales each block as a whole).
+pub fn blocks() -> Vec<usize> {
+    let channels = Net::Vgg16.tap_channels();
+    TAPS.iter().map(|&t| channels[t] * GRID * GRID).collect()
+}
+
 /// Values per image.
 pub fn dims() -> usize {
-    let channels = Net::Vgg16.tap_channels();
-    TAPS.iter().map(|&t| channels[t] * GRID * GRID).sum()
+    blocks().iter().sum()
 }
 
 /// VGG16 as a feature extractor for eta.

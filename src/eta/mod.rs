@@ -15,7 +15,7 @@
 //! 2. **Features** ([`features`]): VGG16's `relu2_2`, `relu3_3` and `relu4_3`,
 //!    average-pooled to 4 x 4 cells, 14,336 values per camera.
 //! 3. **Projection** ([`projection`]): principal components of the training split's
-//!    timesteps only, whitened, 128 values; saved at the export's root as
+//!    timesteps only, on one common scale, 128 values; saved at the export's root as
 //!    `eta_projection.safetensors` and applied unchanged to every other split, to a FREE
 //!    export of the same subject, and to another subject's capture that drives this
 //!    avatar.

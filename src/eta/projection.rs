@@ -1,18 +1,30 @@
 //! The projection from image features to the 128 eta values: principal components of the
-//! training split's features, whitened.
+//! training split's features, on one common scale.
 //!
-//! Fitted on the `N` training timesteps' feature vectors `f` ([`super::features`]): each
-//! feature is standardised (`z = (f - mean) / scale`, `scale` the feature's standard
-//! deviation over the `N`, 1 where it is 0), the components `v_k` are the leading
-//! eigenvectors of the `z`s' covariance (found through the `N x N` Gram matrix, as `N` is
-//! far below the feature count), and `eta_k = (z . v_k) / sqrt(lambda_k)`: each value has
-//! mean 0 and variance 1 over the training timesteps. At most `min(128, N - 1)` components
-//! carry variance; the rest (and any with `lambda_k <= 1e-9 lambda_1`) are zero rows, so
-//! their eta values are 0.
+//! Fitted on the `N` training timesteps' feature vectors `f` ([`super::features`]), which
+//! come in blocks (one per VGG tap and camera):
 //!
-//! Saved as one safetensors file ([`FILE_NAME`]): `mean`, `scale` `[D]`, `components`
-//! `[128, D]`, `whiten` `[128]` (`1 / sqrt(lambda_k)`, 0 for an empty row), and the
-//! [`ProjectionMeta`] as JSON in the metadata under `texavatars-eta`.
+//! - each feature is centred and each block scaled as a whole:
+//!   `z = (f - mean) / scale`, `scale` the root mean square over the block of its features'
+//!   standard deviations over the `N` (1 for a constant block), so that every tap weighs
+//!   the same whatever its channel count and activation level, and no feature that is
+//!   nearly constant on the training frames is magnified;
+//! - the components `v_k` are the leading eigenvectors of the `z`s' covariance (through the
+//!   `N x N` Gram matrix, as `N` is far below the feature count);
+//! - `eta_k = (z . v_k) / sqrt(mean(lambda))`, one scale for every component (the mean over
+//!   the kept components' eigenvalues): over the training timesteps the values are
+//!   uncorrelated, with mean 0 and mean variance 1, and each component keeps its share of
+//!   the variance. Whitening each component instead (`/ sqrt(lambda_k)`) would divide
+//!   frames outside the training set by the smallest eigenvalues: their codes would be
+//!   dominated by the weakest directions.
+//!
+//! At most `min(128, N - 1)` components carry variance; the rest (and any with
+//! `lambda_k <= 1e-9 lambda_1`) are zero rows, so their eta values are 0.
+//!
+//! Saved as one safetensors file ([`FILE_NAME`]): `mean`, `scale` `[D]` (the block's scale
+//! repeated per feature), `components` `[128, D]`, `whiten` `[128]` (the common
+//! `1 / sqrt(mean(lambda))`, 0 for an empty row), and the [`ProjectionMeta`] as JSON in the
+//! metadata under `texavatars-eta`.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -55,21 +67,27 @@ pub struct ProjectionMeta {
 pub struct Projection {
     /// Per-feature mean over the training timesteps, `[D]`.
     pub mean: Vec<f32>,
-    /// Per-feature standard deviation (1 where it is 0), `[D]`.
+    /// Per-feature scale: its block's root mean square standard deviation, `[D]`.
     pub scale: Vec<f32>,
     /// Unit components, `[ETA_DIM, D]` row-major.
     pub components: Vec<f32>,
-    /// `1 / sqrt(lambda_k)`, `[ETA_DIM]` (0 for a zero row).
+    /// The common `1 / sqrt(mean(lambda))`, `[ETA_DIM]` (0 for a zero row).
     pub whiten: Vec<f32>,
     /// How it was made.
     pub meta: ProjectionMeta,
 }
 
 impl Projection {
-    /// Fits the projection to `features` (one vector per training timestep, equal lengths).
-    /// `meta.rank` and `meta.explained` are filled in here. Errors name `what` when there
-    /// are fewer than two vectors or their lengths differ.
-    pub fn fit(features: &[Vec<f32>], mut meta: ProjectionMeta, what: &str) -> Result<Self> {
+    /// Fits the projection to `features` (one vector per training timestep, equal lengths,
+    /// made of consecutive blocks of the lengths `blocks`). `meta.rank` and
+    /// `meta.explained` are filled in here. Errors name `what` when there are fewer than
+    /// two vectors, their lengths differ or the blocks do not add up to them.
+    pub fn fit(
+        features: &[Vec<f32>],
+        blocks: &[usize],
+        mut meta: ProjectionMeta,
+        what: &str,
+    ) -> Result<Self> {
         let n = features.len();
         if n < 2 {
             return Err(Error::invalid(
@@ -102,13 +120,21 @@ impl Projection {
                 *s += (f64::from(v) - m).powi(2);
             }
         }
-        let scale: Vec<f64> = var
-            .iter()
-            .map(|s| {
-                let sd = (s / (n - 1) as f64).sqrt();
-                if sd > 1e-12 { sd } else { 1.0 }
-            })
-            .collect();
+        if blocks.iter().sum::<usize>() != d {
+            return Err(Error::invalid(
+                what,
+                "features",
+                format!("{d} values, blocks {blocks:?}"),
+            ));
+        }
+        let mut scale = Vec::with_capacity(d);
+        let mut at = 0;
+        for &b in blocks {
+            let ms = var[at..at + b].iter().sum::<f64>() / ((n - 1) * b.max(1)) as f64;
+            let s = if ms.sqrt() > 1e-12 { ms.sqrt() } else { 1.0 };
+            scale.extend(std::iter::repeat_n(s, b));
+            at += b;
+        }
         // Standardised features, N x D.
         let z: Vec<Vec<f64>> = features
             .iter()
@@ -130,6 +156,7 @@ impl Projection {
         let mut components = vec![0.0f32; ETA_DIM * d];
         let mut whiten = vec![0.0f32; ETA_DIM];
         let mut explained = Vec::new();
+        let mut kept: Vec<f64> = Vec::new();
         for (k, &o) in order.iter().take(ETA_DIM.min(n - 1)).enumerate() {
             let lambda = eig.eigenvalues[o];
             if !(lambda > 1e-9 * top && lambda > 0.0) {
@@ -145,8 +172,12 @@ impl Projection {
                     *r += (w * zv) as f32;
                 }
             }
-            whiten[k] = (1.0 / lambda.sqrt()) as f32;
+            kept.push(lambda);
             explained.push((lambda / total.max(1e-300)) as f32);
+        }
+        if !kept.is_empty() {
+            let common = 1.0 / (kept.iter().sum::<f64>() / kept.len() as f64).sqrt();
+            whiten[..kept.len()].fill(common as f32);
         }
         meta.rank = explained.len();
         meta.explained = explained;
@@ -376,38 +407,58 @@ mod tests {
         }
     }
 
-    /// Features from 3 latent factors: the codes are white over the fitting set, the rank
-    /// is 3, and the codes determine the latents linearly.
+    /// `n` feature vectors of length `d` from 3 latent factors of unequal strength, plus a
+    /// little noise, and two nearly constant features.
+    fn low_rank(r: &mut Pcg, mix: &[f32], n: usize, d: usize) -> Vec<Vec<f32>> {
+        (0..n)
+            .map(|_| {
+                let l = [3.0 * r.normal(), r.normal(), 0.5 * r.normal()];
+                (0..d)
+                    .map(|j| {
+                        let noise = if j < 2 { 1e-7 } else { 0.01 };
+                        let signal: f32 = if j < 2 {
+                            0.0
+                        } else {
+                            (0..3).map(|k| l[k] * mix[k * d + j]).sum()
+                        };
+                        2.0 + signal + noise * r.normal()
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// On the fitting set the codes are uncorrelated, centred, with mean variance 1 over the
+    /// components, which keep their order of strength.
     #[test]
-    fn fit_whitens_and_finds_the_rank() {
+    fn fit_decorrelates_on_one_scale() {
         let mut r = Pcg::new(5);
         let (n, d) = (40, 30);
         let mix: Vec<f32> = (0..3 * d).map(|_| r.normal()).collect();
-        let latents: Vec<[f32; 3]> = (0..n)
-            .map(|_| [r.normal(), r.normal(), r.normal()])
-            .collect();
-        let feats: Vec<Vec<f32>> = latents
-            .iter()
-            .map(|l| {
-                (0..d)
-                    .map(|j| 2.0 + (0..3).map(|k| l[k] * mix[k * d + j]).sum::<f32>())
-                    .collect()
-            })
-            .collect();
-        let p = Projection::fit(&feats, meta(), "test").expect("fit");
-        assert_eq!(p.meta.rank, 3);
+        let feats = low_rank(&mut r, &mix, n, d);
+        let p = Projection::fit(&feats, &[10, 20], meta(), "test").expect("fit");
         let total: f32 = p.meta.explained.iter().sum();
         assert!((total - 1.0).abs() < 1e-4, "{total}");
+        assert!(
+            p.meta.explained[0] > 0.5 && p.meta.explained[3] < 0.01,
+            "{:?}",
+            p.meta.explained
+        );
+        let k = p.meta.rank;
         let codes: Vec<Vec<f32>> = feats.iter().map(|f| p.apply(f)).collect();
+        let cov =
+            |a: usize, b: usize| codes.iter().map(|c| c[a] * c[b]).sum::<f32>() / (n - 1) as f32;
         for a in 0..ETA_DIM {
             let mean: f32 = codes.iter().map(|c| c[a]).sum::<f32>() / n as f32;
             assert!(mean.abs() < 1e-3, "component {a}: mean {mean}");
-            for b in 0..ETA_DIM {
-                let cov: f32 = codes.iter().map(|c| c[a] * c[b]).sum::<f32>() / (n - 1) as f32;
-                let want = if a == b && a < 3 { 1.0 } else { 0.0 };
-                assert!((cov - want).abs() < 2e-3, "cov[{a}][{b}] = {cov}");
+            for b in 0..a {
+                assert!(cov(a, b).abs() < 2e-3, "cov[{a}][{b}] = {}", cov(a, b));
             }
         }
+        let mean_var = (0..k).map(|a| cov(a, a)).sum::<f32>() / k as f32;
+        assert!((mean_var - 1.0).abs() < 1e-3, "{mean_var}");
+        assert!(cov(0, 0) > cov(1, 1) && cov(1, 1) > cov(2, 2));
+        assert!(codes.iter().all(|c| c[k..].iter().all(|v| *v == 0.0)));
         // Round trip through the file format.
         let back = Projection::from_bytes(&p.to_bytes().expect("bytes"), "mem").expect("read");
         assert_eq!(back, p);
@@ -415,11 +466,32 @@ mod tests {
         assert!(e.to_string().contains("x.safetensors"), "{e}");
     }
 
+    /// New frames from the same distribution get codes of the training codes' size: neither
+    /// the nearly constant features nor the weakest components are magnified.
+    #[test]
+    fn new_frames_get_codes_of_the_same_size() {
+        let mut r = Pcg::new(9);
+        let (n, d) = (40, 30);
+        let mix: Vec<f32> = (0..3 * d).map(|_| r.normal()).collect();
+        let feats = low_rank(&mut r, &mix, n, d);
+        let p = Projection::fit(&feats, &[d], meta(), "test").expect("fit");
+        let rms = |fs: &[Vec<f32>]| {
+            let s: f32 = fs
+                .iter()
+                .map(|f| p.apply(f).iter().map(|v| v * v).sum::<f32>())
+                .sum();
+            (s / fs.len() as f32).sqrt()
+        };
+        let fresh = low_rank(&mut r, &mix, 200, d);
+        let (seen, new) = (rms(&feats), rms(&fresh));
+        assert!(new < 1.5 * seen, "new frames {new}, training frames {seen}");
+    }
+
     #[test]
     fn fit_needs_two_equal_vectors() {
-        let e = Projection::fit(&[vec![1.0]], meta(), "train.json").expect_err("one");
+        let e = Projection::fit(&[vec![1.0]], &[1], meta(), "train.json").expect_err("one");
         assert!(e.to_string().contains("train.json") && e.to_string().contains("at least 2"));
-        let e = Projection::fit(&[vec![1.0], vec![1.0, 2.0]], meta(), "train.json")
+        let e = Projection::fit(&[vec![1.0], vec![1.0, 2.0]], &[1], meta(), "train.json")
             .expect_err("ragged");
         assert!(e.to_string().contains("timestep 1"), "{e}");
     }
