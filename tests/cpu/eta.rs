@@ -264,6 +264,27 @@ fn eta_codes_every_timestep_with_a_projection_fitted_on_train_only() {
     );
     assert_eq!(code(&train[0]), codes[0], "training codes unchanged");
 
+    // A run trained on these codes keeps their projection; codes made with another one
+    // are told apart (cross-reenactment needs the avatar's projection).
+    let run = data.parent().expect("root").join("run");
+    std::fs::create_dir_all(&run).expect("mkdir");
+    let train_frames = load_transforms(&data.join(Split::Train.file_name())).expect("train");
+    let kept = texavatars::eta::projection::copy_for_run(&train_frames, &run)
+        .expect("copy")
+        .expect("image codes have a projection");
+    assert_eq!(std::fs::read(&kept).expect("read"), before);
+    let same = EtaSource::read(&src_dir).expect("read").expect("source");
+    assert!(texavatars::eta::projection::run_mismatch([&same], &run, "motion").is_none());
+    let other = EtaSource {
+        projection_id: "0000000000000000".into(),
+        ..same.clone()
+    };
+    let w = texavatars::eta::projection::run_mismatch([&other], &run, "motion").expect("warning");
+    assert!(
+        w.contains("--projection") && w.contains(&r.projection_id),
+        "{w}"
+    );
+
     // A given projection's cameras are the codes' cameras.
     let mut given = opts(&data);
     given.force = true;
