@@ -56,9 +56,20 @@ fn trained_avatar_is_scored_on_every_split() {
             .collect();
         assert_eq!(panels.len(), 1);
     }
-    // Per split: the up-front check of its files, then its scores.
-    let (checks, scores): (Vec<_>, Vec<_>) = lines.iter().partition(|l| l.contains("checked"));
-    assert_eq!((checks.len(), scores.len()), (3, 3), "{lines:?}");
+    // Per split: the up-front check of its files and where its eta comes from (the
+    // benchmark's side files), then its scores.
+    let (eta, rest): (Vec<_>, Vec<_>) = lines.iter().partition(|l| l.contains("eta ("));
+    for split in ["val", "test", "free"] {
+        let line = format!("eta ({split}): side files without eta/source.json");
+        assert!(eta.iter().any(|l| l.contains(&line)), "{line}: {eta:?}");
+    }
+    let (checks, scores): (Vec<&&String>, Vec<&&String>) =
+        rest.iter().partition(|l| l.contains("checked"));
+    assert_eq!(
+        (eta.len(), checks.len(), scores.len()),
+        (3, 3, 3),
+        "{lines:?}"
+    );
     assert!(report.table.contains("novel view"));
     let json: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(opts.out.join("metrics.json")).expect("json"),
