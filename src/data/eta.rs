@@ -1,4 +1,4 @@
-//! Which eta a split has: its side files (`eta/TTTTT.npy`, [`vhap::eta_path`]) and, when
+//! Which eta a split has: its side files (`eta/TTTTT.npy`, [`crate::data::vhap::eta_path`]) and, when
 //! `texavatars eta` wrote them, where they came from (`eta/source.json`, [`EtaSource`]).
 //!
 //! `train`, `eval` and `render` report this per split ([`EtaFiles::describe`]), so that a
