@@ -271,11 +271,7 @@ fn warn_eta(
     let sources: Vec<EtaSource> = match kind {
         MotionKind::Dataset => {
             let files = EtaFiles::scan(&crate::data::vhap::load_transforms(motion)?)?;
-            let line = files.describe(&what);
-            eprintln!(
-                "{}{line}",
-                if files.is_missing() { "warning: " } else { "" }
-            );
+            eprintln!("{}", files.line(&what));
             files.folders.into_values().flatten().collect()
         }
         MotionKind::Parameters if motion.is_dir() => {

@@ -144,6 +144,16 @@ impl EtaFiles {
         )
     }
 
+    /// [`EtaFiles::describe`], prefixed `warning: ` when the split has no eta file.
+    pub fn line(&self, name: &str) -> String {
+        let d = self.describe(name);
+        if self.is_missing() {
+            format!("warning: {d}")
+        } else {
+            d
+        }
+    }
+
     /// Whether a warning is due: the split has timesteps and none of them has a file.
     pub fn is_missing(&self) -> bool {
         self.timesteps > 0 && self.with_file == 0
@@ -154,12 +164,7 @@ impl EtaFiles {
 /// prefixed `warning:` when the split has no eta file at all) and returns the scan.
 pub fn announce(frames: &[VhapFrame], name: &str) -> Result<EtaFiles> {
     let files = EtaFiles::scan(frames)?;
-    let line = files.describe(name);
-    if files.is_missing() {
-        eprintln!("warning: {line}");
-    } else {
-        eprintln!("{line}");
-    }
+    eprintln!("{}", files.line(name));
     Ok(files)
 }
 

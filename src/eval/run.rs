@@ -181,12 +181,7 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
             t0.elapsed().as_secs_f64()
         ));
         let eta = crate::data::eta::EtaFiles::scan(ds.frames())?;
-        let line = eta.describe(split);
-        progress(&if eta.is_missing() {
-            format!("warning: {line}")
-        } else {
-            line
-        });
+        progress(&eta.line(split));
         let sources = eta.folders.values().flatten();
         if let Some(w) = crate::eta::projection::run_mismatch(sources, &opts.run, split) {
             progress(&w);
