@@ -77,7 +77,8 @@ pub fn sync(device: &Device) -> Result<()> {
 }
 
 /// Renders frame `c` from `camera` `renders` times per round for `rounds` rounds (after one
-/// warm-up render); `progress(round)` after each round.
+/// warm-up render); `progress(round)` after each round. The work runs on rayon's pool
+/// ([`texavatars_cpu::threads::on_pool`]).
 pub fn measure(
     avatar: &dyn Drivable,
     c: &Conditioning,
@@ -85,7 +86,21 @@ pub fn measure(
     device: &Device,
     renders: usize,
     rounds: usize,
-    progress: &mut dyn FnMut(usize, &Round),
+    progress: &mut (dyn FnMut(usize, &Round) + Send),
+) -> Result<FpsReport> {
+    texavatars_cpu::threads::on_pool(|| {
+        measure_here(avatar, c, camera, device, renders, rounds, progress)
+    })
+}
+
+fn measure_here(
+    avatar: &dyn Drivable,
+    c: &Conditioning,
+    camera: &Camera,
+    device: &Device,
+    renders: usize,
+    rounds: usize,
+    progress: &mut (dyn FnMut(usize, &Round) + Send),
 ) -> Result<FpsReport> {
     if renders == 0 || rounds == 0 {
         return Err(Error::invalid(

@@ -117,7 +117,8 @@ pub fn render_frame_in_view(
 }
 
 /// Renders every frame of `motion` from `cameras` (one per frame) into `opts.out`;
-/// `progress(done, total)` is called after each frame.
+/// `progress(done, total)` is called after each frame. The work runs on rayon's pool
+/// ([`texavatars_cpu::threads::on_pool`]).
 ///
 /// After the inputs are checked, the files an earlier `render` left in `opts.out` are
 /// removed ([`crate::drive::outputs::clear_render_outputs`]: `frames/NNNNN.png`, the sheet,
@@ -130,7 +131,20 @@ pub fn render_motion(
     cameras: &[Camera],
     device: &Device,
     opts: &RenderOptions,
-    progress: &mut dyn FnMut(usize, usize),
+    progress: &mut (dyn FnMut(usize, usize) + Send),
+) -> Result<RenderReport> {
+    texavatars_cpu::threads::on_pool(|| {
+        render_motion_here(avatar, motion, cameras, device, opts, progress)
+    })
+}
+
+fn render_motion_here(
+    avatar: &dyn Drivable,
+    motion: &Motion,
+    cameras: &[Camera],
+    device: &Device,
+    opts: &RenderOptions,
+    progress: &mut (dyn FnMut(usize, usize) + Send),
 ) -> Result<RenderReport> {
     check_motion(avatar, motion)?;
     if cameras.len() != motion.frames.len() {

@@ -25,7 +25,9 @@ pub type ViewCache = Box<dyn std::any::Any>;
 pub type StageMark<'a> = &'a mut dyn FnMut(&'static str) -> Result<()>;
 
 /// An avatar that turns one tracked frame into Gaussians.
-pub trait Drivable {
+///
+/// `Sync`, so that rendering can run on rayon's pool with a borrowed avatar.
+pub trait Drivable: Sync {
     /// The model's name in messages ("TexAvatars", "GaussianAvatars").
     fn model_name(&self) -> &'static str;
 
