@@ -1,6 +1,7 @@
 //! Datasets: the VHAP / GaussianAvatars export format, as a burn dataset and batcher.
 
 pub mod batch;
+pub mod crop;
 pub mod dataset;
 pub mod eta;
 pub mod identity;

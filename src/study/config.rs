@@ -7,10 +7,11 @@
 //!   "gaussianavatars": "train_gaussianavatars.json",
 //!   "iterations": 1500,
 //!   "seeds": [0, 1],
-//!   "variants": ["full", "no-global-uv", "no-jacobian", "no-eta", "image-eta", "no-vgg",
+//!   "variants": ["full", "no-global-uv", "no-jacobian", "no-eta", "image-eta", "crop", "no-vgg",
 //!                "no-flame-refinement", "gaussianavatars"],
 //!   "every_seed": ["image-eta", "no-eta"],
-//!   "eval": { "stride": 3, "lpips": true, "panels": 4 }
+//!   "eval": { "stride": 3, "lpips": true, "panels": 4 },
+//!   "crop": { "width": 256, "height": 256 }
 //! }
 //! ```
 //!
@@ -20,13 +21,16 @@
 //! split folder. The full method runs once per seed, every other variant with the first
 //! seed (and those of `every_seed` once per seed too). `image-eta` trains the full method on
 //! a copy of the subject's data (`OUT/data/NAME.image-eta/`, files hard-linked) whose eta
-//! files are computed from the images (`texavatars eta`, [`crate::eta`]). `iterations`, when given, replaces both training configs' (the checkpoint interval
+//! files are computed from the images (`texavatars eta`, [`crate::eta`]). `crop` trains the
+//! full method on a random window of each frame of `crop`'s size ([`TrainConfig::crop`]), to
+//! compare with whole frames. `iterations`, when given, replaces both training configs' (the checkpoint interval
 //! is capped to it).
 
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::data::crop::CropSize;
 use crate::error::{Error, Result};
 use crate::models::texavatars::Ablations;
 use crate::synth::SynthConfig;
@@ -58,6 +62,8 @@ pub enum Variant {
     /// The full method with eta computed from the subject's own images (`texavatars eta`)
     /// instead of the data's eta files.
     ImageEta,
+    /// The full method trained on a random window of each frame (the study's `crop`).
+    Crop,
     NoVgg,
     NoFlameRefinement,
     Gaussianavatars,
@@ -65,12 +71,13 @@ pub enum Variant {
 
 impl Variant {
     /// Every variant, in the tables' order.
-    pub const ALL: [Variant; 8] = [
+    pub const ALL: [Variant; 9] = [
         Variant::Full,
         Variant::NoGlobalUv,
         Variant::NoJacobian,
         Variant::NoEta,
         Variant::ImageEta,
+        Variant::Crop,
         Variant::NoVgg,
         Variant::NoFlameRefinement,
         Variant::Gaussianavatars,
@@ -84,6 +91,7 @@ impl Variant {
             Variant::NoJacobian => "no-jacobian",
             Variant::NoEta => "no-eta",
             Variant::ImageEta => "image-eta",
+            Variant::Crop => "crop",
             Variant::NoVgg => "no-vgg",
             Variant::NoFlameRefinement => "no-flame-refinement",
             Variant::Gaussianavatars => "gaussianavatars",
@@ -98,6 +106,7 @@ impl Variant {
             Variant::NoJacobian => "w/o Jacobian",
             Variant::NoEta => "w/o eta",
             Variant::ImageEta => "Ours (image eta)",
+            Variant::Crop => "Ours (crop)",
             Variant::NoVgg => "w/o VGG",
             Variant::NoFlameRefinement => "w/o FLAME refinement",
             Variant::Gaussianavatars => "GaussianAvatars",
@@ -108,7 +117,7 @@ impl Variant {
     pub fn ablations(self) -> Option<Ablations> {
         let mut a = Ablations::default();
         match self {
-            Variant::Full | Variant::ImageEta => {}
+            Variant::Full | Variant::ImageEta | Variant::Crop => {}
             Variant::NoGlobalUv => a.global_uv = false,
             Variant::NoJacobian => a.jacobian = false,
             Variant::NoEta => a.eta = false,
@@ -179,6 +188,9 @@ pub struct StudyConfig {
     pub every_seed: Vec<Variant>,
     #[serde(default)]
     pub eval: StudyEval,
+    /// The window of the `crop` variant ([`TrainConfig::crop`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crop: Option<CropSize>,
 }
 
 /// One independent run: train one variant on one subject with one seed, then evaluate it.
@@ -270,6 +282,31 @@ impl Study {
             return Err(Error::invalid(&what, "eval.stride", "must be at least 1"));
         }
         let mut train = TrainConfig::load(&rel(&config.train))?;
+        match (&config.crop, config.variants.contains(&Variant::Crop)) {
+            (Some(c), true) => c.validate(&what)?,
+            (None, true) => {
+                return Err(Error::invalid(
+                    &what,
+                    "crop",
+                    "the crop variant needs the window's size: \"crop\": {\"width\": W, \"height\": H}",
+                ));
+            }
+            (Some(_), false) => {
+                return Err(Error::invalid(
+                    &what,
+                    "crop",
+                    "only the crop variant uses it; add \"crop\" to variants",
+                ));
+            }
+            (None, false) => {}
+        }
+        if train.crop.is_some() && config.variants.contains(&Variant::Crop) {
+            return Err(Error::invalid(
+                rel(&config.train).display().to_string(),
+                "crop",
+                "the crop variant is compared with whole frames: the training config must not crop",
+            ));
+        }
         let gaussianavatars = match &config.gaussianavatars {
             Some(p) => Some(GaTrainConfig::load(&rel(p))?),
             None if config.variants.contains(&Variant::Gaussianavatars) => {
@@ -344,6 +381,9 @@ impl Study {
         let mut c = self.train.clone();
         c.ablations = ablations;
         c.seed = run.seed;
+        if run.variant == Variant::Crop {
+            c.crop = self.config.crop;
+        }
         Some(c)
     }
 
@@ -384,7 +424,7 @@ mod tests {
                         a.flame_refinement != full.flame_refinement,
                     ];
                     let n = differs.iter().filter(|d| **d).count();
-                    let same = matches!(v, Variant::Full | Variant::ImageEta);
+                    let same = matches!(v, Variant::Full | Variant::ImageEta | Variant::Crop);
                     assert_eq!(n, usize::from(!same), "{v:?}");
                 }
                 None => assert_eq!(v, Variant::Gaussianavatars),

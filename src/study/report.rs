@@ -374,6 +374,7 @@ fn color(v: Variant) -> [u8; 3] {
         Variant::NoJacobian => [44, 160, 44],
         Variant::NoEta => [214, 39, 40],
         Variant::ImageEta => [23, 190, 207],
+        Variant::Crop => [188, 189, 34],
         Variant::NoVgg => [148, 103, 189],
         Variant::NoFlameRefinement => [140, 86, 75],
         Variant::Gaussianavatars => [127, 127, 127],

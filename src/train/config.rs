@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use super::constants::*;
 use super::loss::LossWeights;
+use crate::data::crop::CropSize;
 use crate::device::BackendKind;
 use crate::error::{Error, Result};
 use crate::limits;
@@ -82,6 +83,13 @@ pub struct TrainConfig {
     /// Where tensors live (`--backend` overrides it).
     #[serde(default = "flex")]
     pub backend: BackendKind,
+    /// Score a window of each training frame instead of the whole frame: each step renders
+    /// and scores a `width x height` window placed uniformly at random in its frame (drawn
+    /// from the seed and the iteration, so a resumed run draws the same windows), while the
+    /// decoders and the lifting still produce every Gaussian. Validation, `eval` and every
+    /// other command use whole frames. Absent (the default): whole frames, as the paper.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crop: Option<CropSize>,
 }
 
 fn one() -> usize {
@@ -179,6 +187,7 @@ impl TrainConfig {
             log_every: log_every(),
             seed: 0,
             backend: BackendKind::Flex,
+            crop: None,
         }
     }
 
@@ -302,6 +311,9 @@ impl TrainConfig {
         if !(0.0..=1.0).contains(&self.vgg_start) {
             return bad("vgg_start", "must be a fraction in [0, 1]");
         }
+        if let Some(crop) = &self.crop {
+            crop.validate(what)?;
+        }
         let l = &self.loss;
         let weights = [l.l1, l.dssim, l.vgg, l.position, l.scale];
         if weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
@@ -326,7 +338,8 @@ impl TrainConfig {
     /// per-texel attributes and gradients (64 floats per texel of R^2) and the Gaussians
     /// (one per texel at most, [`limits::GAUSSIAN_BYTES`] forward and again backward).
     /// With `image_pixels` (the frames' width x height) it adds per frame the rasterizer's
-    /// forward and backward buffers, the ground truth, L1 and SSIM maps (512 B per pixel) and,
+    /// forward and backward buffers, the ground truth, L1 and SSIM maps (512 B per pixel; of
+    /// the crop's window when the run crops) and,
     /// with the VGG loss on, VGG16's activations of render and target (4.5 KiB per pixel).
     pub fn memory_estimate(&self, image_pixels: Option<u64>) -> Option<limits::Estimate> {
         let NetSpec::Inline(n) = &self.net else {
@@ -418,6 +431,10 @@ impl TrainConfig {
                 per_frame.saturating_mul(batch),
             );
         if let Some(px) = image_pixels {
+            // A crop scores (and renders) its window only.
+            let px = self
+                .crop
+                .map_or(px, |c| px.min(u64::from(c.width) * u64::from(c.height)));
             let vgg = self.ablations.vgg && self.loss.vgg > 0.0;
             let per_px: u64 = 512 + if vgg { 4608 } else { 0 };
             e = e.add(
@@ -454,6 +471,8 @@ impl TrainConfig {
             "seed"
         } else if a.batch_size != b.batch_size {
             "batch_size"
+        } else if a.crop != b.crop {
+            "crop"
         } else {
             "optimiser or loss settings"
         })

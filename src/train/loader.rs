@@ -24,6 +24,7 @@ use burn::data::dataset::DatasetError;
 use burn::tensor::Device;
 
 use super::stop::{IterationRecord, StopControl};
+use crate::data::crop::{CropSize, Window};
 use crate::data::{HeadBatch, HeadBatcher, HeadDataset};
 use crate::util::rng::Pcg;
 
@@ -51,6 +52,9 @@ pub struct Schedule {
     /// ([`IterationRecord`]): its first epoch `e` starts at iteration `n` (before
     /// `e * per_epoch`), so it also trains the rest of the stopped interval.
     pub resume: Option<(usize, usize)>,
+    /// Each training frame seen through a random window of this size
+    /// ([`crop_window`]); `None`: whole frames.
+    pub crop: Option<CropSize>,
 }
 
 impl Schedule {
@@ -83,6 +87,25 @@ pub fn pass_order(seed: u64, pass: usize, n: usize) -> Vec<usize> {
         order.swap(i, j);
     }
     order
+}
+
+/// The window of the `k`-th frame of iteration `iteration` that a cropping run
+/// ([`Schedule::crop`]) scores: placed uniformly in the frame by a PCG seeded by the seed,
+/// the iteration and `k` alone, so a resumed run scores the windows the uninterrupted run
+/// would have.
+pub fn crop_window(
+    crop: &CropSize,
+    seed: u64,
+    iteration: usize,
+    k: usize,
+    width: u32,
+    height: u32,
+) -> Window {
+    let stream = (iteration as u64)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add((k as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+    let mut rng = Pcg::new(seed ^ stream ^ 0xC807_0000_0000_0000);
+    crop.place(width, height, &mut rng)
 }
 
 /// Which frames a loader yields.
@@ -269,9 +292,23 @@ impl Iterator for FrameIter<'_> {
             self.plan = Vec::new().into_iter();
             return None;
         }
+        let crop = match &self.loader.frames {
+            Frames::Schedule { schedule, .. } => schedule.crop.map(|c| (c, schedule.seed)),
+            Frames::Fixed(_) => None,
+        };
         let items: Result<Vec<_>, _> = frames
             .iter()
-            .map(|&i| self.loader.dataset.load_item(i))
+            .enumerate()
+            .map(|(k, &i)| {
+                let item = self.loader.dataset.load_item(i)?;
+                Ok::<_, crate::error::Error>(match &crop {
+                    Some((c, seed)) => {
+                        let (w, h) = (item.camera.width, item.camera.height);
+                        crop_window(c, *seed, iteration, k, w, h).apply(item)
+                    }
+                    None => item,
+                })
+            })
             .collect();
         if let (Err(e), Some((stop, _)), Some(_)) = (&items, &self.loader.stop, self.epoch) {
             // An unreadable frame: checkpoint what was trained and let `train` report it.

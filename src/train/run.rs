@@ -73,6 +73,16 @@ fn train_here(config: &TrainConfig, options: &TrainOptions) -> Result<TrainRepor
 
     let model = Arc::new(head.model.clone());
     let (train_set, val_set) = open_frames(options, model, config.val_frames)?;
+    if let Some(crop) = &config.crop {
+        let what = train_set.transforms_path().display().to_string();
+        for f in train_set.frames() {
+            crop.check_fits(&what, f.camera.width, f.camera.height)?;
+        }
+        eprintln!(
+            "train: crop: each step scores a random {}x{} window of its frame",
+            crop.width, crop.height
+        );
+    }
 
     let out = &options.out;
     let folder = prepare_folder(options, &OWNED, files::AVATAR, || {
@@ -168,6 +178,7 @@ fn train_here(config: &TrainConfig, options: &TrainOptions) -> Result<TrainRepor
             total: config.iterations,
             batch_size: config.batch_size,
             resume: folder.resume_at,
+            crop: config.crop,
         },
         checkpoint: folder.checkpoint,
         log_every: config.log_every,

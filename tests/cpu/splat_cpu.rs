@@ -361,3 +361,62 @@ fn packed_inputs_render_and_differentiate_as_separate_ones() {
     let e = render_packed(bad, &scene.params).unwrap_err().to_string();
     assert!(e.contains("packed") && e.contains("[N, 13]"), "{e}");
 }
+
+/// A training crop ([`texavatars::data::crop`]) renders exactly its window of the whole
+/// frame: same pixels (the tile grid moves with the window, the values must not). The scene
+/// keeps the Gaussians whose centres project inside the window: for a centre far outside
+/// it, the EWA Jacobian is clamped at the window's field of view instead of the frame's
+/// (3DGS's `FOV_MARGIN`, kernels/gpu/src/splat/constants.rs), a difference the crop option
+/// accepts (docs/training.md).
+#[test]
+fn a_crop_camera_renders_the_window_of_the_frame() {
+    use texavatars::data::crop::Window;
+    let mut s = random_scene(600, 70, 50, 21);
+    let win = Window {
+        x0: 13,
+        y0: 9,
+        width: 37,
+        height: 29,
+    };
+    let cam = s.params.camera;
+    let inside = |i: usize| {
+        let m = &cam.world_to_camera;
+        let p = &s.means[3 * i..3 * i + 3];
+        let q: [f32; 3] =
+            std::array::from_fn(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+        let (u, v) = (cam.fx * q[0] / q[2] + cam.cx, cam.fy * q[1] / q[2] + cam.cy);
+        (13.0..50.0).contains(&u) && (9.0..38.0).contains(&v)
+    };
+    let keep: Vec<usize> = (0..s.opacities.len()).filter(|&i| inside(i)).collect();
+    let pick = |v: &[f32], k: usize| -> Vec<f32> {
+        keep.iter().flat_map(|&i| v[k * i..k * i + k].to_vec()).collect()
+    };
+    (s.means, s.cov6, s.colors, s.opacities) = (
+        pick(&s.means, 3),
+        pick(&s.cov6, 6),
+        pick(&s.colors, 3),
+        pick(&s.opacities, 1),
+    );
+    assert!(keep.len() > 50, "{} Gaussians in the window", keep.len());
+    let scene = cpu::Scene {
+        means: &s.means,
+        cov6: &s.cov6,
+        colors: &s.colors,
+        opacities: &s.opacities,
+    };
+    let full = cpu::forward(&scene, &cam, s.params.background);
+    let part = cpu::forward(&scene, &win.camera(&cam), s.params.background);
+    let mut worst = 0f32;
+    for y in 0..win.height as usize {
+        for x in 0..win.width as usize {
+            let fp = ((y + 9) * 70 + x + 13) * 4;
+            let wp = (y * win.width as usize + x) * 4;
+            for c in 0..4 {
+                worst = worst.max((full.out[fp + c] - part.out[wp + c]).abs());
+            }
+        }
+    }
+    let covered = part.out.chunks(4).filter(|p| p[3] < 0.99).count();
+    assert!(covered > 100, "the window shows Gaussians ({covered} pixels)");
+    assert!(worst < 1e-5, "largest difference {worst}");
+}

@@ -325,6 +325,44 @@ fn vgg_on_without_weights_is_a_clear_error() {
     assert!(e.to_string().contains("weights install"), "{e}");
 }
 
+/// `crop` trains on windows; a window larger than the frames is refused before anything is
+/// written, and a run cannot be resumed with another crop.
+#[test]
+fn a_cropping_run_trains_and_keeps_its_crop() {
+    use texavatars::data::crop::CropSize;
+    let mut c = tiny_config();
+    c.iterations = 2;
+    c.checkpoint_every = 2;
+    c.val_frames = 1;
+    c.crop = Some(CropSize {
+        width: 64,
+        height: 16,
+    });
+    let out = out_dir("crop");
+    let e = train::train(&c, &options(&out, BackendKind::Flex)).unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("transforms_train.json") && msg.contains("64x16"),
+        "{msg}"
+    );
+    assert!(!out.exists(), "nothing written for a refused crop");
+    c.crop = Some(CropSize {
+        width: 16,
+        height: 16,
+    });
+    let run = train::train(&c, &options(&out, BackendKind::Flex)).unwrap();
+    assert_eq!(run.end_iteration, 2);
+    let saved = TrainConfig::load(&out.join(files::CONFIG)).unwrap();
+    assert_eq!(saved.crop, c.crop);
+    let mut other = c.clone();
+    other.iterations = 4;
+    other.crop = None;
+    let mut o = options(&out, BackendKind::Flex);
+    o.resume = true;
+    let e = train::train(&other, &o).unwrap_err();
+    assert!(e.to_string().contains("crop"), "{e}");
+}
+
 #[test]
 fn a_stopped_run_resumes_with_its_iteration_count() {
     let mut c = tiny_config();
@@ -374,6 +412,7 @@ fn the_frame_order_is_the_same_after_a_resume() {
         total: 700,
         batch_size: 1,
         resume: None,
+        crop: None,
     };
     let device = Device::flex();
     let frames = |l: &FrameLoader| -> Vec<(usize, usize, usize)> {
@@ -395,6 +434,96 @@ fn the_frame_order_is_the_same_after_a_resume() {
     let mut pass = train::loader::pass_order(9, 3, ds.len());
     pass.sort_unstable();
     assert_eq!(pass, (0..ds.len()).collect::<Vec<_>>());
+}
+
+/// A cropping schedule hands out windows of the frames it would have handed out whole: the
+/// same frames in the same order, each image the window of the whole image, each camera the
+/// window's; the windows are a function of the seed and the iteration (a resume draws the
+/// same ones) and move between iterations.
+#[test]
+fn a_cropping_loader_hands_out_windows_of_the_same_frames() {
+    let ds =
+        Arc::new(HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap());
+    let whole = Schedule {
+        seed: 4,
+        per_epoch: 6,
+        total: 60,
+        batch_size: 1,
+        resume: None,
+        crop: None,
+    };
+    let size = texavatars::data::crop::CropSize {
+        width: 16,
+        height: 20,
+    };
+    let cropped = Schedule {
+        crop: Some(size),
+        ..whole.clone()
+    };
+    let device = Device::flex();
+    let a: Vec<_> = FrameLoader::training(ds.clone(), whole, 1, &device)
+        .iter()
+        .map(|b| b.unwrap())
+        .collect();
+    let b: Vec<_> = FrameLoader::training(ds.clone(), cropped.clone(), 1, &device)
+        .iter()
+        .map(|b| b.unwrap())
+        .collect();
+    let again: Vec<_> = FrameLoader::training(ds.clone(), cropped, 1, &device)
+        .iter()
+        .map(|b| b.unwrap())
+        .collect();
+    assert_eq!(a.len(), 6);
+    let mut origins = std::collections::HashSet::new();
+    for ((a, b), c) in a.iter().zip(&b).zip(&again) {
+        assert_eq!(a.iteration, b.iteration);
+        assert_eq!(a.batch.timesteps, b.batch.timesteps);
+        assert_eq!(a.batch.camera_indices, b.batch.camera_indices);
+        let (ca, cb) = (a.batch.cameras[0], b.batch.cameras[0]);
+        assert_eq!((cb.width, cb.height), (16, 20));
+        assert_eq!(
+            (cb.fx, cb.fy, cb.world_to_camera),
+            (ca.fx, ca.fy, ca.world_to_camera)
+        );
+        let (x0, y0) = (
+            (ca.cx - cb.cx).round() as usize,
+            (ca.cy - cb.cy).round() as usize,
+        );
+        let window = train::loader::crop_window(&size, 4, a.iteration, 0, ca.width, ca.height);
+        assert_eq!((window.x0 as usize, window.y0 as usize), (x0, y0));
+        origins.insert((x0, y0));
+        let full = a
+            .batch
+            .images
+            .clone()
+            .into_data()
+            .iter::<f32>()
+            .collect::<Vec<_>>();
+        let part = b
+            .batch
+            .images
+            .clone()
+            .into_data()
+            .iter::<f32>()
+            .collect::<Vec<_>>();
+        let w = ca.width as usize;
+        for y in 0..20 {
+            for x in 0..16 {
+                for ch in 0..3 {
+                    assert_eq!(
+                        part[(y * 16 + x) * 3 + ch],
+                        full[((y0 + y) * w + x0 + x) * 3 + ch]
+                    );
+                }
+            }
+        }
+        assert_eq!(c.batch.cameras[0], cb, "the same window on every pass");
+        assert_eq!(
+            a.batch.expr.clone().into_data(),
+            b.batch.expr.clone().into_data()
+        );
+    }
+    assert!(origins.len() > 3, "windows move: {origins:?}");
 }
 
 /// Largest |after - before| over the parameters whose path contains `part`.

@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use super::{data, out_dir};
+use texavatars::data::crop::CropSize;
+use texavatars::study::Variant;
 
 fn study_config(dir: &Path) -> PathBuf {
     std::fs::create_dir_all(dir).unwrap();
@@ -263,6 +265,18 @@ fn a_bad_study_config_names_its_field() {
             serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train, "seeds": [], "variants": ["full"]}),
             "seeds",
         ),
+        (
+            serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train, "seeds": [0], "variants": ["full", "crop"]}),
+            "crop",
+        ),
+        (
+            serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train, "seeds": [0], "variants": ["full"], "crop": {"width": 32, "height": 32}}),
+            "crop",
+        ),
+        (
+            serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train, "seeds": [0], "variants": ["crop"], "crop": {"width": 8, "height": 32}}),
+            "crop.width",
+        ),
     ] {
         let path = root.join("bad.json");
         std::fs::write(&path, config.to_string()).unwrap();
@@ -270,6 +284,32 @@ fn a_bad_study_config_names_its_field() {
             .unwrap_err()
             .to_string();
         assert!(e.contains(field) && e.contains("bad.json"), "{field}: {e}");
+    }
+}
+
+/// The crop variant is the full method with the study's window; every other variant trains
+/// on whole frames.
+#[test]
+fn the_crop_variant_trains_the_full_method_on_windows() {
+    let root = out_dir("study-crop");
+    std::fs::create_dir_all(&root).unwrap();
+    let train = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_tiny.json");
+    let path = root.join("crop.json");
+    let config = serde_json::json!({"subjects": [{"name": "a", "synth": 0}], "train": train,
+        "seeds": [0, 1], "variants": ["full", "crop", "no-jacobian"], "every_seed": ["crop"],
+        "crop": {"width": 16, "height": 24}});
+    std::fs::write(&path, config.to_string()).unwrap();
+    let s = texavatars::study::Study::load(&path).unwrap();
+    let runs = s.runs();
+    assert_eq!(runs.len(), 5);
+    for r in &runs {
+        let c = s.train_config(r).unwrap();
+        let want = (r.variant == Variant::Crop).then_some(CropSize {
+            width: 16,
+            height: 24,
+        });
+        assert_eq!(c.crop, want, "{}", r.id());
+        assert_eq!(c.ablations.jacobian, r.variant != Variant::NoJacobian);
     }
 }
 

@@ -163,6 +163,7 @@ fn train_here(config: &GaTrainConfig, options: &TrainOptions) -> Result<GaTrainR
             total: config.iterations,
             batch_size: 1,
             resume: folder.resume_at,
+            crop: None,
         },
         checkpoint: folder.checkpoint,
         log_every: config.log_every,
