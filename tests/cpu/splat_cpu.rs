@@ -389,7 +389,9 @@ fn a_crop_camera_renders_the_window_of_the_frame() {
     };
     let keep: Vec<usize> = (0..s.opacities.len()).filter(|&i| inside(i)).collect();
     let pick = |v: &[f32], k: usize| -> Vec<f32> {
-        keep.iter().flat_map(|&i| v[k * i..k * i + k].to_vec()).collect()
+        keep.iter()
+            .flat_map(|&i| v[k * i..k * i + k].to_vec())
+            .collect()
     };
     (s.means, s.cov6, s.colors, s.opacities) = (
         pick(&s.means, 3),
@@ -417,6 +419,9 @@ fn a_crop_camera_renders_the_window_of_the_frame() {
         }
     }
     let covered = part.out.chunks(4).filter(|p| p[3] < 0.99).count();
-    assert!(covered > 100, "the window shows Gaussians ({covered} pixels)");
+    assert!(
+        covered > 100,
+        "the window shows Gaussians ({covered} pixels)"
+    );
     assert!(worst < 1e-5, "largest difference {worst}");
 }

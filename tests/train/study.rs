@@ -9,7 +9,7 @@ use std::process::{Command, Output};
 
 use super::{data, out_dir};
 use texavatars::data::crop::CropSize;
-use texavatars::study::Variant;
+use texavatars::study::{RunSpec, Variant};
 
 fn study_config(dir: &Path) -> PathBuf {
     std::fs::create_dir_all(dir).unwrap();
@@ -342,5 +342,30 @@ fn shipped_study_configs_load() {
         assert_eq!(s.gaussianavatars.as_ref().unwrap().iterations, 3_500);
         assert_eq!(s.train.net_config().unwrap().uv_res, uv_res, "{name}");
         assert_eq!(s.synth.width, width, "{name}");
+    }
+    // The crop's comparison at 550 x 802: its whole-frame runs are the ladder's (same data,
+    // configs and evaluation), its crop runs differ from them only in the window.
+    let crop = texavatars::study::Study::load(&dir.join("study_crop_802.json")).unwrap();
+    let ladder = texavatars::study::Study::load(&dir.join("study_ladder_802.json")).unwrap();
+    assert_eq!(crop.runs().len(), 4);
+    assert_eq!(
+        (crop.synth.clone(), crop.config.eval.clone()),
+        (ladder.synth.clone(), ladder.config.eval.clone())
+    );
+    for r in crop.runs() {
+        let c = crop.train_config(&r).unwrap();
+        let mut whole = ladder
+            .train_config(&RunSpec {
+                variant: Variant::Full,
+                ..r.clone()
+            })
+            .unwrap();
+        if r.variant == Variant::Crop {
+            whole.crop = Some(CropSize {
+                width: 256,
+                height: 256,
+            });
+        }
+        assert_eq!(c, whole, "{}", r.id());
     }
 }
