@@ -25,6 +25,9 @@ use crate::train::{Term, TrainConfig, TrainOptions, files, train};
 #[derive(Clone, Debug)]
 pub struct DemoOptions {
     pub out: PathBuf,
+    /// The benchmark's settings (default: [`SynthConfig::default`]; the paper-scale
+    /// avatar: `configs/synth_802x550.json`, [`paper_configs`]).
+    pub synth_config: SynthConfig,
     /// Training configuration (default: `configs/train_cpu.json`).
     pub train_config: PathBuf,
     /// Score `ceil(n / k)` of each split's n images, spread evenly over its timesteps and
@@ -37,15 +40,33 @@ pub struct DemoOptions {
     pub force: bool,
 }
 
-/// The default training configuration: `configs/train_cpu.json` under the working directory,
-/// else the one in the source tree this binary was built from.
-pub fn default_train_config() -> PathBuf {
-    let local = Path::new("configs/train_cpu.json");
+/// The shipped config `configs/NAME` under the working directory, else the one in the
+/// source tree this binary was built from.
+pub fn shipped_config(name: &str) -> PathBuf {
+    let local = Path::new("configs").join(name);
     if local.exists() {
-        local.to_path_buf()
+        local
     } else {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/train_cpu.json")
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("configs")
+            .join(name)
     }
+}
+
+/// The default training configuration: `configs/train_cpu.json` ([`shipped_config`]).
+pub fn default_train_config() -> PathBuf {
+    shipped_config("train_cpu.json")
+}
+
+/// The paper-scale avatar's benchmark settings and training configuration: the benchmark
+/// at NeRSemble's 550 x 802 (`configs/synth_802x550.json`) and the `paper` networks
+/// (`configs/train_paper_cpu.json`).
+pub fn paper_configs() -> Result<(SynthConfig, PathBuf)> {
+    let path = shipped_config("synth_802x550.json");
+    Ok((
+        SynthConfig::load(&path)?,
+        shipped_config("train_paper_cpu.json"),
+    ))
 }
 
 /// Reads a burn metric log (`value,count` per line; a `final` line closes an epoch).
@@ -204,7 +225,7 @@ pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Resul
 
     progress("1/3 synthetic benchmark (skips what is already there)");
     let t = Instant::now();
-    let synth_config = SynthConfig::default();
+    let synth_config = opts.synth_config.clone();
     // A benchmark from other settings (an earlier version's defaults) would be trained on
     // and scored as if it were today's: refused, or with --force made again, and the run
     // trained on it started anew.
@@ -215,9 +236,9 @@ pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Resul
                 file,
                 field,
                 format!(
-                    "{why}: {} holds a benchmark made with other settings than this version's defaults; \
-                     re-run `texavatars demo --force` to generate it again and train anew (its files and {} are deleted), \
-                     or choose another --out",
+                    "{why}: {} holds a benchmark made with other settings than this run's; \
+                     re-run the same `texavatars demo` command with --force to generate it again and train anew \
+                     (its files and {} are deleted), or choose another --out",
                     data.display(),
                     run_dir.display()
                 ),
@@ -302,7 +323,7 @@ pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Resul
     let total = start.elapsed().as_secs_f64();
     let text = format!(
         "# texavatars demo report\n\n\
-         Synthetic benchmark: {} images ({synth_s:.0} s this run). Training: `{}` ({train_s:.0} s this run). \
+         Synthetic benchmark: {} images at {}x{} ({synth_s:.0} s this run). Training: `{}` ({train_s:.0} s this run). \
          Evaluation: 1/{} of the images of val / test / free, spread evenly over timesteps and cameras ({eval_s:.0} s){}. \
          Total {total:.0} s.\n\n{}\n\
          Files: `metrics.json` (means, standard deviations and every image), `table.md`, `images/<split>/` (ground truth | render | error ×4, each under a header with its \
@@ -310,6 +331,8 @@ pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Resul
          `loss.png` (log scale: the objective per iteration, its moving average over 50 iterations, validation, and each \
          loss term's moving average) and `psnr.png` (training per iteration, moving average, validation).\n",
         s.images,
+        synth_config.width,
+        synth_config.height,
         opts.train_config.display(),
         opts.eval_stride,
         if have_weights {
@@ -331,6 +354,20 @@ pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Resul
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_paper_configs_are_the_shipped_paper_scale_ones() {
+        let (synth, train) = paper_configs().expect("shipped configs");
+        assert_eq!((synth.width, synth.height), (550, 802));
+        assert_eq!(
+            synth,
+            SynthConfig::load(&shipped_config("synth_802x550.json")).unwrap()
+        );
+        let t = TrainConfig::load(&train).expect("train_paper_cpu.json");
+        assert!(train.ends_with("configs/train_paper_cpu.json"));
+        assert_eq!(t.net_config().unwrap().uv_res, 512);
+        assert_eq!(t.crop, None, "the paper-scale avatar scores whole frames");
+    }
 
     #[test]
     fn metric_logs_become_curves() {

@@ -4,17 +4,25 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use crate::demo::{DemoOptions, default_train_config, run as run_demo};
+use crate::demo::{DemoOptions, default_train_config, paper_configs, run as run_demo};
+use crate::synth::SynthConfig;
 
 /// Arguments of `demo`.
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Output folder (data/, run/, report/); an interrupted job continues where it stopped.
-    #[arg(long, default_value = "out/demo")]
-    pub out: PathBuf,
-    /// Training configuration (default: configs/train_cpu.json).
+    /// Output folder (data/, run/, report/); an interrupted job continues where it stopped
+    /// (default: out/demo; with --paper, out/paper).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Training configuration (default: configs/train_cpu.json; with --paper,
+    /// configs/train_paper_cpu.json).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// The paper-scale avatar: the benchmark at 550 x 802 (configs/synth_802x550.json) and
+    /// the paper networks (configs/train_paper_cpu.json). Hours on 2 cores; stop it at any
+    /// time and run the same command again to continue.
+    #[arg(long)]
+    pub paper: bool,
     /// Score ceil(n / k) of each split's n images, spread evenly over its timesteps and
     /// cameras.
     #[arg(long, default_value_t = 4)]
@@ -37,9 +45,16 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         // has started a thread that could read the environment concurrently.
         unsafe { std::env::set_var("BURN_DEVICE", "flex") };
     }
+    let (synth_config, train_config, out) = if a.paper {
+        let (synth, train) = paper_configs()?;
+        (synth, train, "out/paper")
+    } else {
+        (SynthConfig::default(), default_train_config(), "out/demo")
+    };
     let opts = DemoOptions {
-        out: a.out,
-        train_config: a.config.unwrap_or_else(default_train_config),
+        out: a.out.unwrap_or_else(|| PathBuf::from(out)),
+        synth_config,
+        train_config: a.config.unwrap_or(train_config),
         eval_stride: a.eval_stride,
         install_weights: !a.no_weights_install,
         force: a.force,

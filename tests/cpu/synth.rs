@@ -482,6 +482,7 @@ fn the_demo_refuses_a_benchmark_made_with_other_defaults_and_keeps_it() {
     std::fs::write(out.join("run/avatar.bpk"), b"earlier avatar").expect("avatar");
     let opts = texavatars::demo::DemoOptions {
         out: out.clone(),
+        synth_config: SynthConfig::default(),
         train_config: texavatars::demo::default_train_config(),
         eval_stride: 4,
         install_weights: false,
@@ -493,7 +494,28 @@ fn the_demo_refuses_a_benchmark_made_with_other_defaults_and_keeps_it() {
     assert!(
         e.contains("config.json")
             && e.contains("frames_per_sequence")
-            && e.contains("demo --force"),
+            && e.contains("`texavatars demo` command with --force"),
+        "{e}"
+    );
+    // The paper-scale demo (`--paper`) checks against its own benchmark settings.
+    let (paper, train) = texavatars::demo::paper_configs().expect("paper configs");
+    std::fs::write(
+        &recorded,
+        serde_json::to_string(&SynthConfig::default()).expect("json"),
+    )
+    .expect("write");
+    let e = texavatars::demo::run(
+        &texavatars::demo::DemoOptions {
+            synth_config: paper,
+            train_config: train,
+            ..opts.clone()
+        },
+        &mut |_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("recorded 200, now 802") && e.contains("--force"),
         "{e}"
     );
     // Nothing was deleted or overwritten.
