@@ -12,11 +12,17 @@ use crate::study::{Study, report, run};
 #[derive(Debug, Args)]
 pub struct StudyArgs {
     /// The study config (configs/study_cpu.json).
-    #[arg(long)]
-    pub config: PathBuf,
-    /// Output folder: data/, runs/, plan/, report/.
+    #[arg(long, required_unless_present = "ladder")]
+    pub config: Option<PathBuf>,
+    /// Output folder: data/, runs/, plan/, report/ (with --ladder: the ladder's tables and
+    /// figures).
     #[arg(long)]
     pub out: PathBuf,
+    /// Read these collected study folders as the rungs of a resolution ladder, in order
+    /// (repeat the flag), and write each component's effect against pixels per triangle
+    /// into --out; runs nothing.
+    #[arg(long, value_name = "STUDY_OUT", conflicts_with_all = ["config", "plan", "collect", "run", "prepare", "reevaluate"])]
+    pub ladder: Vec<PathBuf>,
     /// Print the independent runs as command lines, write OUT/plan/commands.txt and
     /// OUT/plan/slurm.sh, and print an `xargs -P` line; runs nothing.
     #[arg(long, conflicts_with_all = ["collect", "run", "prepare"])]
@@ -44,7 +50,17 @@ pub struct StudyArgs {
 
 /// Runs `study`.
 pub fn run(a: StudyArgs) -> anyhow::Result<()> {
-    let study = Study::load(&a.config)?;
+    let Some(config) = &a.config else {
+        let l = crate::study::ladder::collect(&a.ladder, &a.out)?;
+        println!("{}", l.markdown);
+        eprintln!(
+            "study: the ladder of {} rungs is in {}",
+            l.rungs.len(),
+            a.out.display()
+        );
+        return Ok(());
+    };
+    let study = Study::load(config)?;
     let runs = study.runs();
     let exe = std::env::current_exe()
         .map(|p| p.display().to_string())

@@ -11,6 +11,7 @@
 //! array script), and collected from whatever has finished (`--collect`).
 
 pub mod config;
+pub mod ladder;
 pub mod report;
 pub mod run;
 

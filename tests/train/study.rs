@@ -114,6 +114,53 @@ fn a_tiny_study_runs_resumes_and_collects_the_same_through_its_plan() {
     let m = free_psnr("Ours (full)");
     assert!((m - 0.5 * (a + b)).abs() < 1e-9, "{a} {b} {m}");
     assert_ne!(a, b, "two seeds, two avatars");
+    // The ladder reads collected studies as rungs (here the same study twice).
+    let ladder_dir = root.join("ladder");
+    let o = Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["study", "--ladder"])
+        .arg(&out)
+        .arg("--ladder")
+        .arg(&out)
+        .arg("--out")
+        .arg(&ladder_dir)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ladder: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ladder_dir.join("ladder.json")).unwrap())
+            .unwrap();
+    let rung = &ladder["rungs"][0];
+    let e = &rung["effects"]["free/psnr"];
+    assert!((e["full"].as_f64().unwrap() - m).abs() < 1e-9);
+    let spread = (a - b).abs() / 2f64.sqrt();
+    assert!(
+        (e["seed_spread"].as_f64().unwrap() - spread).abs() < 1e-9,
+        "{e}"
+    );
+    let no_eta = free_psnr("w/o eta") - m;
+    assert!(
+        (e["change"]["no-eta"].as_f64().unwrap() - no_eta).abs() < 1e-9,
+        "{e}"
+    );
+    assert!(
+        rung["pixels_per_triangle"]["free"].as_f64().unwrap() > 0.0,
+        "{rung}"
+    );
+    let md = std::fs::read_to_string(ladder_dir.join("ladder.md")).unwrap();
+    assert!(md.contains(&format!("{no_eta:+.2} |")), "{md}");
+    for f in ["ladder_free_psnr.png", "ladder_held-out_lpips.png"] {
+        assert!(ladder_dir.join(f).is_file(), "{f}");
+    }
+    // A folder that was never collected is named.
+    let o = Command::new(env!("CARGO_BIN_EXE_texavatars"))
+        .args(["study", "--ladder"])
+        .arg(&root)
+        .arg("--out")
+        .arg(root.join("ladder2"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("tables.json"));
     for f in [
         "bars_psnr.png",
         "bars_ssim.png",
