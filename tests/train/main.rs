@@ -402,18 +402,27 @@ fn a_stopped_run_resumes_with_its_iteration_count() {
     assert!(e.to_string().contains("ablations"), "{e}");
 }
 
-#[test]
-fn the_frame_order_is_the_same_after_a_resume() {
-    let ds =
-        Arc::new(HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap());
-    let schedule = Schedule {
-        seed: 9,
-        per_epoch: 7,
-        total: 700,
+/// The tiny benchmark's training split.
+fn train_set() -> Arc<HeadDataset> {
+    Arc::new(HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap())
+}
+
+/// A batch-1 schedule over whole frames.
+fn whole_frames(seed: u64, per_epoch: usize, total: usize) -> Schedule {
+    Schedule {
+        seed,
+        per_epoch,
+        total,
         batch_size: 1,
         resume: None,
         crop: None,
-    };
+    }
+}
+
+#[test]
+fn the_frame_order_is_the_same_after_a_resume() {
+    let ds = train_set();
+    let schedule = whole_frames(9, 7, 700);
     let device = Device::flex();
     let frames = |l: &FrameLoader| -> Vec<(usize, usize, usize)> {
         l.iter()
@@ -442,16 +451,8 @@ fn the_frame_order_is_the_same_after_a_resume() {
 /// same ones) and move between iterations.
 #[test]
 fn a_cropping_loader_hands_out_windows_of_the_same_frames() {
-    let ds =
-        Arc::new(HeadDataset::open(data(), Split::Train, Arc::new(head().model.clone())).unwrap());
-    let whole = Schedule {
-        seed: 4,
-        per_epoch: 6,
-        total: 60,
-        batch_size: 1,
-        resume: None,
-        crop: None,
-    };
+    let ds = train_set();
+    let whole = whole_frames(4, 6, 60);
     let size = texavatars::data::crop::CropSize {
         width: 16,
         height: 20,
@@ -461,18 +462,15 @@ fn a_cropping_loader_hands_out_windows_of_the_same_frames() {
         ..whole.clone()
     };
     let device = Device::flex();
-    let a: Vec<_> = FrameLoader::training(ds.clone(), whole, 1, &device)
-        .iter()
-        .map(|b| b.unwrap())
-        .collect();
-    let b: Vec<_> = FrameLoader::training(ds.clone(), cropped.clone(), 1, &device)
-        .iter()
-        .map(|b| b.unwrap())
-        .collect();
-    let again: Vec<_> = FrameLoader::training(ds.clone(), cropped, 1, &device)
-        .iter()
-        .map(|b| b.unwrap())
-        .collect();
+    let second_epoch = |schedule: Schedule| -> Vec<TrainBatch> {
+        FrameLoader::training(ds.clone(), schedule, 1, &device)
+            .iter()
+            .map(|b| b.unwrap())
+            .collect()
+    };
+    let a = second_epoch(whole);
+    let b = second_epoch(cropped.clone());
+    let again = second_epoch(cropped);
     assert_eq!(a.len(), 6);
     let mut origins = std::collections::HashSet::new();
     for ((a, b), c) in a.iter().zip(&b).zip(&again) {
