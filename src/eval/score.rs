@@ -11,7 +11,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::metrics::{self, Lpips, Net};
+use crate::metrics::{self, Lpips, LpipsVggCpu, Net};
 
 /// Scores of one image.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -27,7 +27,14 @@ pub struct Scores {
 pub struct Scorer {
     device: Device,
     alex: Option<Lpips>,
-    vgg: Option<Lpips>,
+    vgg: Option<VggLpips>,
+}
+
+/// LPIPS-vgg on burn's ops, or on the host's VGG16 network on the CPU backends (the same
+/// metric, several times faster there).
+enum VggLpips {
+    Burn(Lpips),
+    Host(LpipsVggCpu),
 }
 
 impl Scorer {
@@ -35,10 +42,12 @@ impl Scorer {
     /// error naming the missing file and the install command when absent).
     pub fn new(device: &Device, lpips: bool) -> Result<Self> {
         let (alex, vgg) = if lpips {
-            (
-                Some(Lpips::load(Net::AlexNet, device)?),
-                Some(Lpips::load(Net::Vgg16, device)?),
-            )
+            let vgg = if metrics::on_cpu(device) {
+                VggLpips::Host(LpipsVggCpu::load()?)
+            } else {
+                VggLpips::Burn(Lpips::load(Net::Vgg16, device)?)
+            };
+            (Some(Lpips::load(Net::AlexNet, device)?), Some(vgg))
         } else {
             (None, None)
         };
@@ -69,14 +78,15 @@ impl Scorer {
                 ),
             ));
         }
+        let clamp = |x: &[f32]| -> Vec<f32> { x.iter().map(|v| v.clamp(0.0, 1.0)).collect() };
+        let (image, reference) = (clamp(image), clamp(reference));
         let t = |x: &[f32]| {
-            let clamped: Vec<f32> = x.iter().map(|v| v.clamp(0.0, 1.0)).collect();
             metrics::hwc_to_nchw(Tensor::<3>::from_data(
-                TensorData::new(clamped, [height, width, 3]),
+                TensorData::new(x.to_vec(), [height, width, 3]),
                 &self.device,
             ))
         };
-        let (a, b) = (t(image), t(reference));
+        let (a, b) = (t(&image), t(&reference));
         if self.alex.is_some() || self.vgg.is_some() {
             crate::metrics::lpips::check_size(height, width, "evaluation image")?;
         }
@@ -88,10 +98,10 @@ impl Scorer {
                 .alex
                 .as_ref()
                 .map(|m| first(m.distance(a.clone(), b.clone()))),
-            lpips_vgg: self
-                .vgg
-                .as_ref()
-                .map(|m| first(m.distance(a.clone(), b.clone()))),
+            lpips_vgg: self.vgg.as_ref().map(|m| match m {
+                VggLpips::Burn(m) => first(m.distance(a.clone(), b.clone())),
+                VggLpips::Host(m) => m.distance(&image, &reference, height, width),
+            }),
             lpips_alex_unscaled_inputs: self
                 .alex
                 .as_ref()

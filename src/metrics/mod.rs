@@ -8,6 +8,7 @@
 
 pub mod constants;
 pub mod lpips;
+pub mod lpips_cpu;
 pub mod nets;
 pub mod perceptual;
 pub mod ssim;
@@ -17,11 +18,21 @@ pub mod weights;
 use burn::tensor::{Device, Tensor, TensorData};
 
 pub use lpips::Lpips;
+pub use lpips_cpu::LpipsVggCpu;
 pub use nets::{Features, Net};
 pub use perceptual::VggPerceptual;
 pub use ssim::{ssim, ssim_loss};
 
 use crate::io::image::RgbImage;
+
+/// Whether `device` is one of the CPU backends (`flex`, `ndarray`), where the host paths
+/// of the VGG16 loss and LPIPS ([`vgg_cpu`], [`lpips_cpu`]) run instead of burn's ops.
+pub(crate) fn on_cpu(device: &Device) -> bool {
+    matches!(
+        device.clone().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Flex(_) | burn::backend::DispatchDevice::NdArray(_)
+    )
+}
 
 /// A host RGB image as a [1, 3, H, W] tensor on `device`.
 pub fn image_tensor(img: &RgbImage, device: &Device) -> Tensor<4> {

@@ -28,9 +28,7 @@ use burn::backend::autodiff::{
     ops::{Backward, Ops},
 };
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{
-    Backend, DispatchDevice, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
-};
+use burn::backend::{Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
@@ -38,6 +36,7 @@ use crate::error::Result;
 use crate::metrics::constants::{IMAGENET_MEAN, IMAGENET_STD};
 use crate::metrics::lpips::channel_constant;
 use crate::metrics::nets::{Features, Net};
+use crate::metrics::on_cpu;
 use crate::metrics::vgg_cpu::{Saved, VggCpu};
 use crate::metrics::weights::{self, HostWeights};
 use texavatars_cpu::autodiff;
@@ -148,14 +147,6 @@ impl<B: HostIo + PerceptualBackend, C: CheckpointStrategy> PerceptualBackend for
         let output = |(loss, _)| scalar(loss);
         autodiff::forward_with::<B, C, _, _, _, 2>(VggBackwardOp, nodes, (a, b), run, state, output)
     }
-}
-
-/// Whether `device` is one of the CPU backends the extension runs on.
-fn on_cpu(device: &Device) -> bool {
-    matches!(
-        device.clone().without_autodiff().as_dispatch(),
-        DispatchDevice::Flex(_) | DispatchDevice::NdArray(_)
-    )
 }
 
 impl VggPerceptual {

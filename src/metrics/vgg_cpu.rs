@@ -187,6 +187,23 @@ impl VggCpu {
         acts
     }
 
+    /// The five tap maps (channels-last `[H_k·W_k, C_k]`, after their ReLU) of each of
+    /// `images`, maps of one size already normalised for the network.
+    pub(crate) fn taps(&self, images: Vec<Map>) -> Vec<Vec<Map>> {
+        let keep = vec![false; images.len()];
+        self.features(images, &keep)
+            .into_iter()
+            .map(|act| {
+                act.outputs
+                    .into_iter()
+                    .zip(&self.layers)
+                    .filter(|(_, layer)| layer.tap)
+                    .map(|(map, _)| map)
+                    .collect()
+            })
+            .collect()
+    }
+
     /// The perceptual loss of [`crate::metrics::VggPerceptual::forward`]: the sum over the
     /// five taps of the mean absolute difference of the VGG16 features of `a` and `b`
     /// (images in [0, 1], normalised with the ImageNet statistics first), and the state of

@@ -9,10 +9,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use burn::tensor::{Device, Tensor, TensorData};
-use texavatars::io::image::{read_rgb, write_png};
+use texavatars::io::image::{RgbImage, read_rgb, write_png};
 use texavatars::io::npy::Array;
 use texavatars::metrics::weights::{self, HostWeights};
-use texavatars::metrics::{self, Lpips, Net, VggPerceptual, image_tensor, to_host};
+use texavatars::metrics::{self, Lpips, LpipsVggCpu, Net, VggPerceptual, image_tensor, to_host};
 use texavatars::util::rng::Pcg;
 
 /// burn-flex: the networks run much faster on it than on burn-ndarray (whose conv2d is slow
@@ -395,17 +395,23 @@ fn fixtures() -> (PathBuf, serde_json::Value) {
     (dir, v)
 }
 
-/// Reference and distortions as one batch each: [6, 3, H, W] (reference repeated).
-fn fixture_batch(dir: &Path, d: &Device) -> (Tensor<4>, Tensor<4>) {
+/// The fixture's reference image and its distortions (in [`DISTORTIONS`]' order).
+fn fixture_images(dir: &Path) -> (RgbImage, Vec<RgbImage>) {
     let read = |name: &str| {
         let path = dir.join(format!("{name}.png"));
         read_rgb(&path).unwrap_or_else(|e| panic!("fixture {}: {e}", path.display()))
     };
-    let r = image_tensor(&read("reference"), d);
-    let imgs: Vec<Tensor<4>> = DISTORTIONS
-        .iter()
-        .map(|n| image_tensor(&read(n), d))
-        .collect();
+    (
+        read("reference"),
+        DISTORTIONS.iter().map(|n| read(n)).collect(),
+    )
+}
+
+/// Reference and distortions as one batch each: [6, 3, H, W] (reference repeated).
+fn fixture_batch(dir: &Path, d: &Device) -> (Tensor<4>, Tensor<4>) {
+    let (reference, distorted) = fixture_images(dir);
+    let r = image_tensor(&reference, d);
+    let imgs: Vec<Tensor<4>> = distorted.iter().map(|i| image_tensor(i, d)).collect();
     (Tensor::cat(imgs, 0), r.repeat_dim(0, DISTORTIONS.len()))
 }
 
@@ -480,6 +486,45 @@ fn lpips_matches_fixtures() {
     );
     let vgg = Lpips::load(Net::Vgg16, &d).expect("vgg16 weights");
     compare(&expected, "lpips_vgg", &to_host(vgg.distance(i, r)), 1e-4);
+    // `eval`'s host path on the CPU backends, against the same outputs of the package.
+    let host = LpipsVggCpu::load().expect("vgg16 weights");
+    let (reference, distorted) = fixture_images(&dir);
+    let got: Vec<f64> = distorted
+        .iter()
+        .map(|img| host.distance(&img.rgb, &reference.rgb, img.height, img.width))
+        .collect();
+    compare(&expected, "lpips_vgg", &got, 1e-4);
+}
+
+/// `eval`'s host LPIPS-vgg against its reference twin, burn's `Lpips` on the same weights,
+/// on both CPU backends; odd sizes exercise the pools' dropped edges.
+#[test]
+fn host_lpips_vgg_matches_burn() {
+    let weights = synthetic_weights(Net::Vgg16, 13);
+    let host = LpipsVggCpu::from_host(&weights);
+    let (h, w) = (37, 45);
+    let a = random(21, h * w * 3);
+    let b: Vec<f32> = a
+        .iter()
+        .zip(random(22, h * w * 3))
+        .map(|(x, n)| (x + 0.3 * (n - 0.5)).clamp(0.0, 1.0))
+        .collect();
+    let got = host.distance(&a, &b, h, w);
+    assert!(host.distance(&a, &a, h, w).abs() < 1e-9);
+    for d in [Device::flex(), Device::ndarray()] {
+        let t = |x: &[f32]| {
+            metrics::hwc_to_nchw(Tensor::<3>::from_data(
+                TensorData::new(x.to_vec(), [h, w, 3]),
+                &d,
+            ))
+        };
+        let want = scalar(Lpips::from_host(&weights, &d).distance(t(&a), t(&b)));
+        assert!(want > 1e-3, "{d:?}: lpips {want}");
+        assert!(
+            (got - want).abs() < 1e-4 * want,
+            "{d:?}: host {got} vs burn {want}"
+        );
+    }
 }
 
 #[test]
