@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use clap::Args;
 
 use crate::device::BackendKind;
+use crate::eval::Scorer;
 use crate::io::image::read_rgb;
-use crate::metrics::{self, Lpips, Net};
 
 /// Arguments of `metrics`.
 #[derive(Debug, Args)]
@@ -21,7 +21,8 @@ pub struct MetricsArgs {
     #[arg(long)]
     pub no_lpips: bool,
     /// Where the networks run. Defaults to flex: on the CPU, burn-ndarray's convolutions
-    /// make LPIPS-VGG many times slower than burn-flex's.
+    /// make LPIPS-alex slower than burn-flex's (LPIPS-vgg runs on the host network on
+    /// both).
     #[arg(long, value_enum, default_value_t = BackendKind::Flex)]
     pub backend: BackendKind,
 }
@@ -61,25 +62,17 @@ pub fn score(
             r.height
         );
     }
-    let device = backend.device();
-    let a = metrics::image_tensor(&i, &device);
-    let b = metrics::image_tensor(&r, &device);
-    let first = |t| metrics::to_host(t)[0];
-    let mut s = Scores {
-        psnr: first(metrics::psnr(a.clone(), b.clone())),
-        ssim: first(metrics::ssim(a.clone(), b.clone())),
-        lpips_alex: None,
-        lpips_vgg: None,
-        lpips_alex_unscaled_inputs: None,
-    };
     if lpips {
         crate::metrics::lpips::check_size(i.height, i.width, &image.display().to_string())?;
-        let alex = Lpips::load(Net::AlexNet, &device)?;
-        let vgg = Lpips::load(Net::Vgg16, &device)?;
-        s.lpips_alex = Some(first(alex.distance(a.clone(), b.clone())));
-        s.lpips_alex_unscaled_inputs = Some(first(alex.distance_raw(a.clone(), b.clone())));
-        s.lpips_vgg = Some(first(vgg.distance(a, b)));
     }
+    let scores = Scorer::new(&backend.device(), lpips)?.score(&r.rgb, &i.rgb, r.height, r.width)?;
+    let s = Scores {
+        psnr: scores.psnr,
+        ssim: scores.ssim,
+        lpips_alex: scores.lpips_alex,
+        lpips_vgg: scores.lpips_vgg,
+        lpips_alex_unscaled_inputs: scores.lpips_alex_unscaled_inputs,
+    };
     Ok(s)
 }
 
