@@ -25,6 +25,11 @@
 //!   §4): where piecewise frames are most discontinuous, what Global UV's blending across
 //!   borders smooths ("w/o Global UV").
 //!
+//! - *shear* (not a region; `triangles` in `metrics.json`): the face's `ln(σ1 / σ2)`, its
+//!   principal stretches' log ratio against the neutral head: zero for a similarity (which
+//!   `k R` follows exactly), and the log of the aspect change only the Jacobian follows. Its
+//!   distribution over the covered pixels says how much the Jacobian can change an image.
+//!
 //! Both tenths are taken over all faces of the frame (the 90th percentile of the frame's
 //! values; a face stretched by less than [`MIN_STRAIN`] is never `stretched`), fixed before
 //! any score was seen. Regions may overlap (`stretched`, `creases`
@@ -57,6 +62,14 @@ pub const TOP_SHARE: f64 = 0.1;
 /// A face stretched by less than 1 % (`max |ln σ|` < 0.01) is not `stretched`, top tenth or
 /// not (at the neutral pose nothing is).
 pub const MIN_STRAIN: f64 = 0.01;
+
+/// Width of a [`ShearHistogram`] bin (`ln(σ1 / σ2)`).
+pub const SHEAR_BIN: f64 = 0.005;
+/// Bins of a [`ShearHistogram`]; the last one is open (shears of 2 and more).
+const SHEAR_BINS: usize = 400;
+/// The shear [`TriangleCoverage::shear_over_10pct`] counts pixels above: principal
+/// stretches that differ by more than 10 %.
+pub const SHEAR_10PCT: f64 = 0.095_310_179_804_324_87; // ln 1.1
 
 const MOUTH_SETS: [&str; 4] = ["lips", "teeth_upper", "teeth_lower", "tongue"];
 const EYE_SETS: [&str; 2] = ["eye_l", "eye_r"];
@@ -184,11 +197,31 @@ impl RegionLabeler {
             .collect()
     }
 
-    /// Region bits of every pixel of `camera`'s image `[H * W]`, `all` included, and the
-    /// image's visible faces and the pixels they cover (pixels per visible triangle).
-    pub fn label(&self, camera: &Camera, vertices: &[[f32; 3]]) -> (Vec<u8>, Coverage) {
+    /// Each face's shear `ln(σ1 / σ2)` for the posed `vertices` (see the module docs; 0 for
+    /// a degenerate face).
+    pub fn face_shear(&self, vertices: &[[f32; 3]]) -> Vec<f64> {
+        self.faces
+            .iter()
+            .zip(&self.rest_metric)
+            .map(|(f, r)| log_stretches(r, &metric(vertices, f)).map_or(0.0, |(a, b)| a - b))
+            .collect()
+    }
+
+    /// Region bits of every pixel of `camera`'s image `[H * W]`, `all` included, the
+    /// image's visible faces and the pixels they cover (pixels per visible triangle), and
+    /// its covered pixels by their face's shear.
+    pub fn label(
+        &self,
+        camera: &Camera,
+        vertices: &[[f32; 3]],
+    ) -> (Vec<u8>, Coverage, ShearHistogram) {
         let per_face = self.face_regions(vertices);
+        let shear = self.face_shear(vertices);
         let frags = crate::mesh::raster::rasterize(camera, vertices, &self.faces);
+        let mut hist = ShearHistogram::default();
+        for f in frags.face.iter().flatten() {
+            hist.add(shear[*f as usize]);
+        }
         let labels = frags
             .face
             .iter()
@@ -200,7 +233,7 @@ impl RegionLabeler {
                     }
             })
             .collect();
-        (labels, frags.coverage())
+        (labels, frags.coverage(), hist)
     }
 }
 
@@ -216,10 +249,16 @@ fn metric(v: &[[f32; 3]], f: &[u32; 3]) -> [f64; 3] {
 /// `max |ln σ|` of the in-plane deformation between two faces' first fundamental forms
 /// (0 for a degenerate face).
 fn strain(rest: &[f64; 3], posed: &[f64; 3]) -> f64 {
+    log_stretches(rest, posed).map_or(0.0, |(a, b)| a.abs().max(b.abs()))
+}
+
+/// `(ln σ1, ln σ2)`, `σ1 ≥ σ2` the principal stretches of the in-plane deformation between
+/// two faces' first fundamental forms; `None` for a degenerate face.
+fn log_stretches(rest: &[f64; 3], posed: &[f64; 3]) -> Option<(f64, f64)> {
     let [a, b, d] = *rest;
     let det_r = a * d - b * b;
     if det_r.is_nan() || det_r <= 1e-24 {
-        return 0.0;
+        return None;
     }
     // M = G_rest⁻¹ G_posed; its eigenvalues are σ².
     let inv = [d / det_r, -b / det_r, a / det_r];
@@ -233,9 +272,66 @@ fn strain(rest: &[f64; 3], posed: &[f64; 3]) -> f64 {
     let disc = (tr * tr / 4.0 - det).max(0.0).sqrt();
     let (l1, l2) = (tr / 2.0 + disc, tr / 2.0 - disc);
     if l2.is_nan() || l2 <= 0.0 {
-        return 0.0;
+        return None;
     }
-    (0.5 * l1.ln()).abs().max((0.5 * l2.ln()).abs())
+    Some((0.5 * l1.ln(), 0.5 * l2.ln()))
+}
+
+/// Pixels counted by their face's shear `ln(σ1 / σ2)`, in bins of [`SHEAR_BIN`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShearHistogram(Vec<u64>);
+
+impl Default for ShearHistogram {
+    fn default() -> Self {
+        ShearHistogram(vec![0; SHEAR_BINS])
+    }
+}
+
+impl ShearHistogram {
+    /// Counts one pixel.
+    pub fn add(&mut self, shear: f64) {
+        let k = (shear.max(0.0) / SHEAR_BIN) as usize;
+        self.0[k.min(SHEAR_BINS - 1)] += 1;
+    }
+
+    /// Adds another histogram's counts.
+    pub fn merge(&mut self, other: &ShearHistogram) {
+        for (a, b) in self.0.iter_mut().zip(&other.0) {
+            *a += b;
+        }
+    }
+
+    /// Pixels counted.
+    pub fn count(&self) -> u64 {
+        self.0.iter().sum()
+    }
+
+    /// The `q` quantile, as the upper edge of its bin (0 when empty).
+    pub fn quantile(&self, q: f64) -> f64 {
+        let n = self.count();
+        if n == 0 {
+            return 0.0;
+        }
+        let want = (q * n as f64).ceil().max(1.0) as u64;
+        let mut seen = 0;
+        for (k, &c) in self.0.iter().enumerate() {
+            seen += c;
+            if seen >= want {
+                return (k + 1) as f64 * SHEAR_BIN;
+            }
+        }
+        SHEAR_BINS as f64 * SHEAR_BIN
+    }
+
+    /// The share of pixels whose bin lies wholly above `x`.
+    pub fn share_above(&self, x: f64) -> f64 {
+        let n = self.count();
+        if n == 0 {
+            return 0.0;
+        }
+        let first = ((x / SHEAR_BIN).ceil() as usize).min(SHEAR_BINS);
+        self.0[first..].iter().sum::<u64>() as f64 / n as f64
+    }
 }
 
 /// `J_F = [e1 | e2 | n / sqrt|n|]` of a posed face, row-major.
@@ -296,13 +392,26 @@ pub struct TriangleCoverage {
     /// Pixels per visible triangle: the covered pixels over the visible faces, pooled over
     /// the images.
     pub pixels_per_triangle: f64,
+    /// The covered pixels' face shear `ln(σ1 / σ2)` against the neutral head (the module
+    /// docs), pooled over the images: median, 90th and 99th percentile (bin width
+    /// [`SHEAR_BIN`]).
+    #[serde(default)]
+    pub shear_median: f64,
+    #[serde(default)]
+    pub shear_p90: f64,
+    #[serde(default)]
+    pub shear_p99: f64,
+    /// The share of covered pixels whose face's principal stretches differ by more than
+    /// 10 % (`σ1 / σ2 > 1.1`).
+    #[serde(default)]
+    pub shear_over_10pct: f64,
 }
 
 /// Accumulates squared errors per split and region, and the triangles' coverage.
 #[derive(Default)]
 pub struct RegionTally {
     sums: BTreeMap<String, [(u64, f64); REGIONS.len()]>,
-    coverage: BTreeMap<String, (u64, Coverage)>,
+    coverage: BTreeMap<String, (u64, Coverage, ShearHistogram)>,
 }
 
 impl RegionTally {
@@ -330,25 +439,30 @@ impl RegionTally {
         }
     }
 
-    /// Adds one image's [`Coverage`] (from [`RegionLabeler::label`]).
-    pub fn add_coverage(&mut self, split: &str, c: Coverage) {
-        let (n, sum) = self.coverage.entry(split.to_string()).or_default();
+    /// Adds one image's [`Coverage`] and [`ShearHistogram`] (from [`RegionLabeler::label`]).
+    pub fn add_coverage(&mut self, split: &str, c: Coverage, shear: &ShearHistogram) {
+        let (n, sum, hist) = self.coverage.entry(split.to_string()).or_default();
         *n += 1;
         sum.visible_faces += c.visible_faces;
         sum.covered_pixels += c.covered_pixels;
+        hist.merge(shear);
     }
 
     /// The triangles' coverage per split.
     pub fn coverage(&self) -> BTreeMap<String, TriangleCoverage> {
         self.coverage
             .iter()
-            .map(|(split, &(n, sum))| {
-                let images = n.max(1) as f64;
+            .map(|(split, (n, sum, hist))| {
+                let images = (*n).max(1) as f64;
                 let c = TriangleCoverage {
-                    images: n,
+                    images: *n,
                     visible_faces: sum.visible_faces as f64 / images,
                     covered_pixels: sum.covered_pixels as f64 / images,
                     pixels_per_triangle: sum.pixels_per_face(),
+                    shear_median: hist.quantile(0.5),
+                    shear_p90: hist.quantile(0.9),
+                    shear_p99: hist.quantile(0.99),
+                    shear_over_10pct: hist.share_above(SHEAR_10PCT),
                 };
                 (split.clone(), c)
             })
@@ -408,6 +522,49 @@ mod tests {
         let flat = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]];
         assert_eq!(strain(&metric(&flat, &f), &r), 0.0);
         assert_eq!(strain(&r, &metric(&flat, &f)), 0.0);
+    }
+
+    #[test]
+    fn shear_is_what_a_similarity_cannot_follow() {
+        let rest = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        let f = [0, 1, 2];
+        let r = metric(&rest, &f);
+        let shear = |v: &[[f32; 3]]| {
+            let (a, b) = log_stretches(&r, &metric(v, &f)).expect("stretches");
+            a - b
+        };
+        // Scaled by 3 and rotated: a similarity, no shear.
+        let big = [[0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [-3.0, 0.0, 0.0]];
+        assert!(shear(&big).abs() < 1e-9);
+        // Stretched by 2 along x: ln 2.
+        let x2 = [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+        assert!((shear(&x2) - 2f64.ln()).abs() < 1e-6);
+        // x += y: σ1 / σ2 = φ².
+        let sh = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]];
+        let phi = (1.0 + 5f64.sqrt()) / 2.0;
+        assert!((shear(&sh) - 2.0 * phi.ln()).abs() < 1e-6);
+        assert!((SHEAR_10PCT - 1.1f64.ln()).abs() < 1e-15);
+    }
+
+    #[test]
+    fn shear_histogram_quantiles() {
+        let mut h = ShearHistogram::default();
+        assert_eq!((h.quantile(0.5), h.share_above(0.0)), (0.0, 0.0));
+        // 90 pixels at 0.001 (bin 0), 10 at 0.2 (bin 40), 1 beyond the last bin.
+        for _ in 0..90 {
+            h.add(0.001);
+        }
+        for _ in 0..10 {
+            h.add(0.2);
+        }
+        let mut other = ShearHistogram::default();
+        other.add(5.0);
+        h.merge(&other);
+        assert_eq!(h.count(), 101);
+        assert_eq!(h.quantile(0.5), SHEAR_BIN);
+        assert!((h.quantile(0.95) - 41.0 * SHEAR_BIN).abs() < 1e-12);
+        assert!((h.quantile(1.0) - 2.0).abs() < 1e-12);
+        assert!((h.share_above(SHEAR_10PCT) - 11.0 / 101.0).abs() < 1e-12);
     }
 
     #[test]

@@ -213,8 +213,8 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
                 translation: item.translation,
                 vertices: item.vertices,
             };
-            let (labels, coverage) = labeler.label(&item.camera, &frame.vertices);
-            region_tally.add_coverage(split, coverage);
+            let (labels, coverage, shear) = labeler.label(&item.camera, &frame.vertices);
+            region_tally.add_coverage(split, coverage, &shear);
             check_frame(
                 avatar.as_ref(),
                 &frame,
@@ -286,15 +286,22 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
 /// Each split's pixels per visible triangle as Markdown.
 pub fn triangles_table(triangles: &BTreeMap<String, TriangleCoverage>) -> String {
     let mut s = String::from(
-        "| split | images | visible triangles per image | pixels covered per image | pixels per visible triangle |\n|---|---|---|---|---|\n",
+        "| split | images | visible triangles per image | pixels covered per image | pixels per visible triangle | shear median / 90th / 99th percentile | pixels with shear over 10 % |\n|---|---|---|---|---|---|---|\n",
     );
     for (split, t) in triangles {
         s += &format!(
-            "| {split} | {} | {:.0} | {:.0} | {:.2} |\n",
-            t.images, t.visible_faces, t.covered_pixels, t.pixels_per_triangle
+            "| {split} | {} | {:.0} | {:.0} | {:.2} | {:.3} / {:.3} / {:.3} | {:.4} |\n",
+            t.images,
+            t.visible_faces,
+            t.covered_pixels,
+            t.pixels_per_triangle,
+            t.shear_median,
+            t.shear_p90,
+            t.shear_p99,
+            t.shear_over_10pct
         );
     }
-    s += "\nA triangle is visible where it is the nearest face at one pixel centre or more of the posed mesh (`texavatars::mesh::raster`).\n";
+    s += "\nA triangle is visible where it is the nearest face at one pixel centre or more of the posed mesh (`texavatars::mesh::raster`). Shear: the covered pixels' face `ln(σ1 / σ2)` against the neutral head, the in-plane deformation GaussianAvatars' frame `k R` cannot follow and the Jacobian does (`texavatars::eval::regions`); over 10 %: `σ1 / σ2 > 1.1`.\n";
     s
 }
 

@@ -94,9 +94,25 @@ fn trained_avatar_is_scored_on_every_split() {
             (t.pixels_per_triangle - ratio).abs() < 1e-6 * ratio.max(1.0),
             "{t:?}"
         );
+        // The covered pixels' shear: ordered quantiles, a share.
+        assert!(
+            0.0 < t.shear_median && t.shear_median <= t.shear_p90 && t.shear_p90 <= t.shear_p99,
+            "{t:?}"
+        );
+        assert!(
+            t.shear_p99 <= 2.0 && (0.0..=1.0).contains(&t.shear_over_10pct),
+            "{t:?}"
+        );
     }
+    // FREE's expressions shear some faces by more than 1 %.
+    assert!(
+        report.triangles["free"].shear_p99 > 0.01,
+        "{:?}",
+        report.triangles
+    );
     let regions = std::fs::read_to_string(opts.out.join("regions.md")).expect("regions.md");
     assert!(regions.contains("pixels per visible triangle"), "{regions}");
+    assert!(regions.contains("shear median"), "{regions}");
     // Mean ± standard deviation over the images.
     assert!(report.table.contains(" ± "), "{}", report.table);
     assert!(report.means["test"].psnr_std > 0.0);
