@@ -1,6 +1,7 @@
 //! The lifting operator: fused CPU vs the tensor-op reference (values and gradients, every
-//! mode and frame), finite differences, rigid motion, PSD covariances, continuity across
-//! triangle borders (global vs local), degenerate triangles.
+//! mode and frame), finite differences, rigid motion, in-plane shear (Jacobian against
+//! `k R`), PSD covariances, continuity across triangle borders (global vs local),
+//! degenerate triangles.
 
 #![allow(deprecated)]
 
@@ -293,6 +294,99 @@ fn rigid_motion_moves_gaussians_rigidly() {
         }
         println!("{mode:?}/{frame:?}: rigid motion max error {worst:.2e}");
         assert!(worst < 1e-4, "{mode:?}/{frame:?}: {worst}");
+    }
+}
+
+/// Where "w/o Jacobian" and the full method differ: an in-plane affine map `A` (a stretch
+/// and a shear) of a flat mesh. The Jacobian frames `[e1 | e2 | n / sqrt|n|]` carry every
+/// Gaussian's in-plane position and covariance through `A` exactly (the in-plane block of
+/// the covariance becomes `A Σ Aᵀ`), in both lift modes; GaussianAvatars' `k R` carries a
+/// similarity per face only, so (lifted per face) each covariance keeps its in-plane aspect
+/// ratio. The component the study removes is live in the lifting.
+#[test]
+fn in_plane_shear_is_followed_by_the_jacobian_only() {
+    let mesh = curved_mesh(5);
+    let local = random_local(16, 13);
+    // The patch unrolled into the plane z = 0.
+    let flat: Vec<f32> = mesh
+        .positions
+        .iter()
+        .flat_map(|p| [p[0].atan2(p[2]), p[1], 0.0])
+        .collect();
+    let a = [[1.5f32, 0.4], [0.0, 0.8]];
+    let t = [0.2f32, -0.1];
+    let moved: Vec<f32> = flat
+        .chunks(3)
+        .flat_map(|v| {
+            [
+                a[0][0] * v[0] + a[0][1] * v[1] + t[0],
+                a[1][0] * v[0] + a[1][1] * v[1] + t[1],
+                0.0,
+            ]
+        })
+        .collect();
+    // The in-plane block [xx, xy, yy] of a lifted Gaussian's covariance, and its aspect
+    // ratio (the eigenvalues' ratio).
+    let block = |g: &[f32; 13]| [g[3], g[4], g[6]];
+    let aspect = |[xx, xy, yy]: [f32; 3]| {
+        let (m, d) = (
+            0.5 * (xx + yy),
+            (0.25 * (xx - yy) * (xx - yy) + xy * xy).sqrt(),
+        );
+        (m + d) / (m - d).max(1e-12)
+    };
+    for mode in [LiftMode::Global, LiftMode::Local] {
+        let p = params(&mesh, 16, 16, mode, FrameKind::Jacobian);
+        let (rest, def) = (
+            lifted_host(&p, &local, &flat),
+            lifted_host(&p, &local, &moved),
+        );
+        let (mut worst, mut most_changed) = (0.0f32, 1.0f32);
+        for (g, h) in rest.iter().zip(&def) {
+            for i in 0..2 {
+                let want = a[i][0] * g[0] + a[i][1] * g[1] + t[i];
+                worst = worst.max((want - h[i]).abs());
+            }
+            let [xx, xy, yy] = block(g);
+            let s = [[xx, xy], [xy, yy]];
+            let asa = |i: usize, j: usize| -> f32 {
+                (0..2)
+                    .flat_map(|k| (0..2).map(move |l| (k, l)))
+                    .map(|(k, l)| a[i][k] * s[k][l] * a[j][l])
+                    .sum()
+            };
+            let want = [asa(0, 0), asa(0, 1), asa(1, 1)];
+            let scale = want.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+            for (w, got) in want.iter().zip(block(h)) {
+                worst = worst.max((w - got).abs() / scale);
+            }
+            let r = aspect(block(h)) / aspect(block(g));
+            most_changed = most_changed.max(r.max(1.0 / r));
+        }
+        println!(
+            "{mode:?}/Jacobian: A Σ Aᵀ within {worst:.2e}, aspect changed up to {most_changed:.2}x"
+        );
+        assert!(worst < 1e-4, "{mode:?}: {worst}");
+        assert!(most_changed > 1.5, "{mode:?}: {most_changed}");
+
+        // Per face, `k R` is a similarity; Global UV's blend of neighbouring faces' frames
+        // (which turn by different angles under `A`) is not one, so the aspect test is the
+        // local mode's.
+        if mode == LiftMode::Global {
+            continue;
+        }
+        let p = params(&mesh, 16, 16, mode, FrameKind::ScaledRotation);
+        let (rest, def) = (
+            lifted_host(&p, &local, &flat),
+            lifted_host(&p, &local, &moved),
+        );
+        let mut worst = 0.0f32;
+        for (g, h) in rest.iter().zip(&def) {
+            let r = aspect(block(h)) / aspect(block(g));
+            worst = worst.max((r - 1.0).abs());
+        }
+        println!("{mode:?}/ScaledRotation: aspect kept within {worst:.2e}");
+        assert!(worst < 1e-3, "{mode:?}: {worst}");
     }
 }
 
