@@ -313,6 +313,7 @@ pub fn run(opts: &DemoOptions, progress: &mut (dyn FnMut(&str) + Send)) -> Resul
             paths: PathPolicy::InsideRoot,
             tracked: false,
             renders: false,
+            against: None,
         },
         &mut |l| progress(l),
     )?;

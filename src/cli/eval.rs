@@ -63,6 +63,11 @@ pub struct EvalArgs {
     /// as GaussianAvatars does).
     #[arg(long)]
     pub tracked: bool,
+    /// A second run of the same subject: render it at every scored frame too and write
+    /// against.md, where the two runs' renders differ per face region (both posed with the
+    /// tracked parameters), and a difference panel per panel frame.
+    #[arg(long, value_name = "RUN")]
+    pub against: Option<PathBuf>,
 }
 
 /// Runs `eval`.
@@ -93,6 +98,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         },
         tracked: a.tracked,
         renders: false,
+        against: a.against,
     };
     let report = evaluate(&opts, &mut |l| eprintln!("eval: {l}"))?;
     println!("{}", report.table);

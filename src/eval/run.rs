@@ -13,9 +13,19 @@
 //! `regions.md` (each split's error per face region, [`crate::eval::regions`]) and
 //! `images/<split>/TTTTT_CC.png` panels (ground truth | render | error, under a header row
 //! naming them, with the render's PSNR).
+//!
+//! With `against` (a second run of the same subject), every scored frame is rendered by
+//! both runs and `against.md` (and `metrics.json`'s `against`) says where their renders
+//! differ: per split and face region, the PSNR between them, the region's share of the
+//! pixels and of the squared difference, and the ratio of the two shares (above 1: the
+//! runs differ more there than on average). Each panel frame gets `TTTTT_CC_against.png`
+//! (the other run | this run | difference), and each split's frame whose faces shear most
+//! `most_sheared_TTTTT_CC_against.png`. This locates an ablation's effect: a variant
+//! trained with the full method's seed differs from it through the component only, while
+//! two seeds of the full method show the training's own noise.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -25,8 +35,10 @@ use crate::data::{Conditioning, HeadDataset, Identity, PathPolicy, Split};
 use crate::device::BackendKind;
 use crate::drive::render::{check_frame, render_frame};
 use crate::error::{Error, Result};
-use crate::eval::regions::{REGIONS, RegionLabeler, RegionScore, RegionTally, TriangleCoverage};
-use crate::eval::score::{Means, Scorer, Scores, Tally, panel, paper_table};
+use crate::eval::regions::{
+    REGIONS, RegionLabeler, RegionScore, RegionTally, SHEAR_10PCT, TriangleCoverage,
+};
+use crate::eval::score::{Means, Scorer, Scores, Tally, panel, panel_named, paper_table};
 use crate::head::{HeadAsset, HeadPose};
 use crate::io;
 
@@ -64,6 +76,10 @@ pub struct EvalOptions {
     /// Also write the render and the ground truth of each panel's frame on their own
     /// (`images/SPLIT/TTTTT_CC_{render,gt}.png`; `texavatars study` puts runs side by side).
     pub renders: bool,
+    /// A second run of the same subject to compare renders with (`--against`; the module
+    /// docs). Both runs are posed with the same meshes: the tracked parameters, as with
+    /// `tracked`, since each run refined its own.
+    pub against: Option<PathBuf>,
 }
 
 /// One scored image.
@@ -86,7 +102,20 @@ pub struct EvalReport {
     pub regions: BTreeMap<String, BTreeMap<String, RegionScore>>,
     /// Each split's pixels per visible triangle.
     pub triangles: BTreeMap<String, TriangleCoverage>,
+    /// Where this run's renders differ from `against`'s.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub against: Option<Against>,
     pub seconds: f64,
+}
+
+/// Where two runs' renders differ (`EvalOptions::against`).
+#[derive(Clone, Debug, Serialize)]
+pub struct Against {
+    /// The other run.
+    pub run: PathBuf,
+    /// Per split and region: `psnr` between the two renders, `pixel_share`, and
+    /// `error_share`, the region's share of the squared difference.
+    pub regions: BTreeMap<String, BTreeMap<String, RegionScore>>,
 }
 
 pub use crate::data::head_for;
@@ -120,7 +149,19 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
         Some(p) => Some(Identity::load(p)?),
         None => None,
     };
-    let refined = if opts.tracked {
+    let other = match &opts.against {
+        Some(path) => {
+            let b = crate::models::load(path, &head, &device)?;
+            let theirs = match &b.identity {
+                Some(p) => Some(Identity::load(p)?),
+                None => None,
+            };
+            same_subject(&opts.run, identity.as_ref(), path, theirs.as_ref())?;
+            Some(b.avatar)
+        }
+        None => None,
+    };
+    let refined = if opts.tracked || other.is_some() {
         None
     } else {
         crate::data::refined::RefinedParams::load(&opts.run)?.map(Arc::new)
@@ -159,7 +200,13 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
         None => HeadPose::default(),
     };
     let labeler = RegionLabeler::new(&head, &neutral)?;
+    // The two runs' names for `against`'s panels.
+    let names = (
+        run_name(opts.against.as_deref().unwrap_or(&opts.run)),
+        run_name(&opts.run),
+    );
     let mut region_tally = RegionTally::default();
+    let mut differ = RegionTally::default();
     let mut tally = Tally::default();
     let mut images = Vec::new();
     // Every split's files, before any scoring (issue 15.5).
@@ -198,8 +245,11 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
             .collect();
         let indices = crate::eval::sample::spread(&frames, ds.len().div_ceil(opts.stride.max(1)));
         let panel_at = spread(indices.len(), opts.panels);
+        // The frame whose faces shear most (the largest share of covered pixels with
+        // σ1 / σ2 > 1.1), with both runs' renders, for `against`'s extreme-frame panel.
+        let mut sheared: Option<Sheared> = None;
         let dir = opts.out.join("images").join(split);
-        if !panel_at.is_empty() {
+        if !panel_at.is_empty() || other.is_some() {
             std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
         }
         for (k, &i) in indices.iter().enumerate() {
@@ -225,7 +275,26 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
             let scores = scorer.score(&gt, &render, h, w)?;
             tally.add(split, &scores);
             region_tally.add(split, &gt, &render, &labels);
-            if panel_at.binary_search(&k).is_ok() {
+            let on_panel = panel_at.binary_search(&k).is_ok();
+            if let Some(b) = &other {
+                let (theirs, _) = render_frame(b.as_ref(), &frame, &item.camera, &device)?;
+                differ.add(split, &theirs, &render, &labels);
+                if on_panel {
+                    let png = dir.join(format!("{t:05}_{c:02}_against.png"));
+                    against_panel(&png, &theirs, &render, h, w, &names)?;
+                }
+                let share = shear.share_above(SHEAR_10PCT);
+                if sheared.as_ref().is_none_or(|s| share > s.share) {
+                    sheared = Some(Sheared {
+                        share,
+                        name: format!("{t:05}_{c:02}"),
+                        theirs,
+                        render: render.clone(),
+                        size: (h, w),
+                    });
+                }
+            }
+            if on_panel {
                 let p = panel(&gt, &render, h, w, scores.psnr)?;
                 let png = dir.join(format!("{t:05}_{c:02}.png"));
                 io::image::write_png(&png, p.width, p.height, &p.rgb)?;
@@ -258,17 +327,34 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
                 ))
             ));
         }
+        if let Some(r) = differ.scores().get(split.as_str()) {
+            progress(&against_line(split, r));
+        }
+        if let Some(s) = sheared {
+            let png = dir.join(format!("most_sheared_{}_against.png", s.name));
+            against_panel(&png, &s.theirs, &s.render, s.size.0, s.size.1, &names)?;
+            progress(&format!(
+                "{split}: the frame whose faces shear most ({:.1} % of its covered pixels over 10 %) compared in {}",
+                100.0 * s.share,
+                png.display()
+            ));
+        }
     }
     let means = tally.means();
     let table = paper_table(&means);
     let regions = region_tally.scores();
     let triangles = region_tally.coverage();
+    let against = opts.against.as_ref().map(|run| Against {
+        run: run.clone(),
+        regions: differ.scores(),
+    });
     let report = EvalReport {
         means,
         images,
         table,
         regions,
         triangles,
+        against,
         seconds: start.elapsed().as_secs_f64(),
     };
     let json = serde_json::to_string_pretty(&report)
@@ -280,7 +366,152 @@ fn evaluate_here(opts: &EvalOptions, progress: &mut dyn FnMut(&str)) -> Result<E
     let path = opts.out.join("regions.md");
     let md = regions_table(&report.regions) + "\n" + &triangles_table(&report.triangles);
     std::fs::write(&path, md).map_err(|e| Error::io(&path, e))?;
+    if let Some(a) = &report.against {
+        let path = opts.out.join("against.md");
+        std::fs::write(&path, against_table(a)).map_err(|e| Error::io(&path, e))?;
+    }
     Ok(report)
+}
+
+/// Refuses to compare runs of different subjects: their identities (shape and static
+/// offsets) must agree.
+fn same_subject(
+    run: &Path,
+    mine: Option<&Identity>,
+    other: &Path,
+    theirs: Option<&Identity>,
+) -> Result<()> {
+    let differs = match (mine, theirs) {
+        (None, None) => false,
+        (Some(a), Some(b)) => {
+            let close = |x: &[f32], y: &[f32]| {
+                x.len() == y.len() && x.iter().zip(y).all(|(p, q)| (p - q).abs() <= 1e-6)
+            };
+            let offsets = match (&a.static_offset, &b.static_offset) {
+                (None, None) => true,
+                (Some(p), Some(q)) => close(p.as_flattened(), q.as_flattened()),
+                _ => false,
+            };
+            !(close(&a.shape, &b.shape) && offsets)
+        }
+        _ => true,
+    };
+    if differs {
+        return Err(Error::invalid(
+            other.display().to_string(),
+            "canonical_flame_param.npz",
+            format!(
+                "its subject (shape, static offsets) is not {}'s: --against compares two runs of the same subject",
+                run.display()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// A split's frame whose faces shear most, with both runs' renders (`against`).
+struct Sheared {
+    /// Its share of covered pixels with `σ1 / σ2 > 1.1`.
+    share: f64,
+    /// `TTTTT_CC`.
+    name: String,
+    theirs: Vec<f32>,
+    render: Vec<f32>,
+    /// (H, W).
+    size: (usize, usize),
+}
+
+/// A run's name for a panel header: its folder's, or its parent's for a `train` folder (a
+/// study's `VARIANT-seedS/train`).
+fn run_name(run: &Path) -> String {
+    let name = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned());
+    match name(run) {
+        Some(n) if n == "train" => run.parent().and_then(name).unwrap_or(n),
+        Some(n) => n,
+        None => run.display().to_string(),
+    }
+}
+
+/// Writes `png`: the other run's render | this run's, with the PSNR between them | their
+/// difference; `names` are (other, this).
+fn against_panel(
+    png: &Path,
+    theirs: &[f32],
+    render: &[f32],
+    h: usize,
+    w: usize,
+    names: &(String, String),
+) -> Result<()> {
+    let psnr = image_psnr(theirs, render);
+    let mine = if psnr.is_finite() {
+        format!("{}, {psnr:.1} dB from it", names.1)
+    } else {
+        format!("{}, identical", names.1)
+    };
+    let p = panel_named(theirs, render, h, w, [&names.0, &mine, "difference ×4"])?;
+    io::image::write_png(png, p.width, p.height, &p.rgb)
+}
+
+/// The PSNR between two images `[H * W * 3]` clamped to [0, 1] (infinite when equal).
+fn image_psnr(a: &[f32], b: &[f32]) -> f64 {
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(&x, &y)| (f64::from(x.clamp(0.0, 1.0)) - f64::from(y.clamp(0.0, 1.0))).powi(2))
+        .sum();
+    -10.0 * (sum / a.len().max(1) as f64).log10()
+}
+
+/// One split's summary of where two runs differ, for the progress line.
+fn against_line(split: &str, r: &BTreeMap<String, RegionScore>) -> String {
+    let psnr = |name: &str| {
+        r.get(name)
+            .and_then(|x| x.psnr)
+            .map_or("-".to_string(), |p| format!("{p:.2} dB"))
+    };
+    let share = |name: &str| {
+        r.get(name).map_or("-".to_string(), |x| {
+            format!(
+                "{:.1} % of the difference on {:.1} % of the pixels",
+                100.0 * x.error_share,
+                100.0 * x.pixel_share
+            )
+        })
+    };
+    format!(
+        "{split}: against the other run: PSNR {} (stretched faces: {}; creases: {})",
+        psnr("all"),
+        share("stretched"),
+        share("creases")
+    )
+}
+
+/// Where two runs differ as Markdown (`against.md`).
+pub fn against_table(a: &Against) -> String {
+    let mut s = format!(
+        "Where this run's renders differ from {}'s, per face region.\n\n| split | region | PSNR between the runs | pixels | share of pixels | share of squared difference | concentration |\n|---|---|---|---|---|---|---|\n",
+        a.run.display()
+    );
+    for (split, r) in &a.regions {
+        for name in REGIONS {
+            if let Some(x) = r.get(name) {
+                let conc = if x.pixel_share > 0.0 {
+                    format!("{:.2}", x.error_share / x.pixel_share)
+                } else {
+                    "-".into()
+                };
+                s += &format!(
+                    "| {split} | {name} | {} | {} | {:.3} | {:.3} | {conc} |\n",
+                    x.psnr.map_or("-".into(), |p| format!("{p:.2}")),
+                    x.pixels,
+                    x.pixel_share,
+                    x.error_share
+                );
+            }
+        }
+    }
+    s += "\nConcentration: the region's share of the squared difference over its share of the pixels (above 1: the two runs differ more there than on average). Both runs are posed with the tracked parameters. Regions: `texavatars::eval::regions` (docs/evaluation.md).\n";
+    s
 }
 
 /// Each split's pixels per visible triangle as Markdown.
@@ -326,4 +557,38 @@ pub fn regions_table(regions: &BTreeMap<String, BTreeMap<String, RegionScore>>) 
     }
     s += "\nRegions: `texavatars::eval::regions` (docs/evaluation.md). PSNR is over the region's pixels pooled over the split's scored images.\n";
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn id(shape: f32, offset: Option<f32>) -> Identity {
+        Identity {
+            shape: vec![0.0, shape],
+            static_offset: offset.map(|o| vec![[o, 0.0, 0.0]; 2]),
+            source: PathBuf::new(),
+        }
+    }
+
+    #[test]
+    fn against_needs_the_same_subject() {
+        let (a, b) = (Path::new("a"), Path::new("b"));
+        assert!(same_subject(a, None, b, None).is_ok());
+        let mine = id(0.5, Some(0.1));
+        assert!(same_subject(a, Some(&mine), b, Some(&id(0.5, Some(0.1)))).is_ok());
+        // Another shape, other offsets, offsets against none, a subject against none: each
+        // refused, naming the other run's file.
+        for theirs in [
+            Some(id(0.6, Some(0.1))),
+            Some(id(0.5, Some(0.2))),
+            Some(id(0.5, None)),
+            None,
+        ] {
+            let e = same_subject(a, Some(&mine), b, theirs.as_ref())
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("canonical_flame_param.npz"), "{e}");
+        }
+    }
 }

@@ -323,13 +323,30 @@ pub fn panel(
     width: usize,
     psnr: f64,
 ) -> Result<crate::io::image::RgbImage> {
-    use crate::eval::plot;
     let render = if psnr.is_finite() {
         format!("render, {psnr:.1} dB")
     } else {
         "render, identical".to_string()
     };
-    let mut out = plot::header(width, &["ground truth", &render, "error ×4"])?;
+    panel_named(
+        reference,
+        image,
+        height,
+        width,
+        ["ground truth", &render, "error ×4"],
+    )
+}
+
+/// [`panel`] under the header `names` (reference, image, difference).
+pub fn panel_named(
+    reference: &[f32],
+    image: &[f32],
+    height: usize,
+    width: usize,
+    names: [&str; 3],
+) -> Result<crate::io::image::RgbImage> {
+    use crate::eval::plot;
+    let mut out = plot::header(width, &names)?;
     let top = out.len();
     out.resize(top + height * width * 9, 0.0);
     for y in 0..height {

@@ -306,6 +306,7 @@ fn evaluate_run(
         paths: PathPolicy::InsideRoot,
         tracked: false,
         renders: true,
+        against: None,
     };
     evaluate(&opts, &mut |l| {
         progress(&format!("{}: eval: {l}", run.id()))

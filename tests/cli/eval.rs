@@ -36,6 +36,7 @@ fn trained_avatar_is_scored_on_every_split() {
         paths: texavatars::data::PathPolicy::InsideRoot,
         tracked: false,
         renders: false,
+        against: None,
     };
     // Before training: a clear error naming the missing file.
     let e = evaluate(&opts, &mut |_| {}).unwrap_err().to_string();
@@ -153,6 +154,65 @@ fn trained_avatar_is_scored_on_every_split() {
     let header = texavatars::eval::plot::header_height(24);
     assert!(header > 0);
     assert_eq!((img.width, img.height), (72, header + 32));
+    // --against: a run compared with itself differs nowhere; with a second, shorter run it
+    // differs, and the regions' shares of the difference partition it as the pixels do.
+    let run2 = dir("run2");
+    tiny::train_tiny(&data, &run2, 2, 2);
+    let mut vs = opts.clone();
+    vs.splits = vec![Split::Free];
+    vs.out = dir("against");
+    vs.against = Some(run.clone());
+    let r = evaluate(&vs, &mut |_| {}).expect("against itself");
+    let same = &r.against.as_ref().expect("against").regions["free"];
+    assert!(same["all"].psnr.is_some_and(|p| p >= 100.0), "{same:?}");
+    assert!(same.values().all(|x| x.error_share == 0.0), "{same:?}");
+    vs.against = Some(run2.clone());
+    let mut said = Vec::new();
+    let r = evaluate(&vs, &mut |l| said.push(l.to_string())).expect("against run2");
+    let a = r.against.as_ref().expect("against");
+    assert_eq!(a.run, run2);
+    let free = &a.regions["free"];
+    let p = free["all"].psnr.expect("psnr");
+    assert!(p.is_finite() && p < 100.0, "{free:?}");
+    assert_eq!(free["all"].error_share, 1.0);
+    let parts: f64 = ["background", "skin", "mouth", "eyes"]
+        .iter()
+        .map(|n| free[*n].error_share)
+        .sum();
+    assert!((parts - 1.0).abs() < 1e-9, "{free:?}");
+    for (name, x) in free {
+        assert_eq!(
+            x.pixels, r.regions["free"][name].pixels,
+            "{name}: the same labels"
+        );
+    }
+    assert!(
+        said.iter().any(|l| l.contains("against the other run")),
+        "{said:?}"
+    );
+    let md = std::fs::read_to_string(vs.out.join("against.md")).expect("against.md");
+    assert!(
+        md.contains("| free | stretched |") && md.contains("concentration"),
+        "{md}"
+    );
+    let diff: Vec<_> = std::fs::read_dir(vs.out.join("images/free"))
+        .expect("panels")
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().ends_with("_against.png"))
+        .collect();
+    // One panel frame and the frame whose faces shear most.
+    assert_eq!(diff.len(), 2);
+    assert!(
+        diff.iter()
+            .any(|e| e.file_name().to_string_lossy().starts_with("most_sheared_")),
+        "{diff:?}"
+    );
+    let img = texavatars::io::image::read_rgb(&diff[0].path()).expect("png");
+    assert_eq!(img.width, 72);
+    assert!(said.iter().any(|l| l.contains("shear most")), "{said:?}");
+    for d in [&run2, &vs.out] {
+        let _ = std::fs::remove_dir_all(d);
+    }
     // A split without a transforms file is skipped with a message.
     std::fs::remove_file(union.join("transforms_free.json")).expect("rm");
     opts.splits = vec![Split::Free];

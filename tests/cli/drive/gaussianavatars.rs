@@ -324,6 +324,7 @@ fn a_gaussianavatars_folder_is_driven_exported_and_rendered() {
         paths: texavatars::data::PathPolicy::InsideRoot,
         tracked: false,
         renders: false,
+        against: None,
     };
     let report = texavatars::eval::run::evaluate(&opts, &mut |_| {}).expect("eval");
     let m = &report.means["test"];
