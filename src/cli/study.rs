@@ -6,7 +6,7 @@ use clap::Args;
 
 use crate::device::BackendKind;
 use crate::error::Error;
-use crate::study::{Study, report, run};
+use crate::study::{Study, paired, report, run};
 
 /// Arguments of `study`.
 #[derive(Debug, Args)]
@@ -21,7 +21,7 @@ pub struct StudyArgs {
     /// Read these collected study folders as the rungs of a resolution ladder, in order
     /// (repeat the flag), and write each component's effect against pixels per triangle
     /// into --out; runs nothing.
-    #[arg(long, value_name = "STUDY_OUT", conflicts_with_all = ["config", "plan", "collect", "run", "prepare", "reevaluate"])]
+    #[arg(long, value_name = "STUDY_OUT", conflicts_with_all = ["config", "plan", "collect", "run", "prepare", "reevaluate", "paired"])]
     pub ladder: Vec<PathBuf>,
     /// Print the independent runs as command lines, write OUT/plan/commands.txt and
     /// OUT/plan/slurm.sh, and print an `xargs -P` line; runs nothing.
@@ -40,6 +40,12 @@ pub struct StudyArgs {
     /// then collect: after `eval` learned a new score (the errors per face region).
     #[arg(long, conflicts_with_all = ["plan", "collect", "prepare"])]
     pub reevaluate: bool,
+    /// Compare each finished run's images with its subject's full method (the first seed):
+    /// both rendered at every held-out and FREE frame the study scores, where they differ
+    /// per face region (`eval --against`) into RUN/paired/ (all runs, or run K with
+    /// --run), then OUT/report/paired.md and paired.json. Runs already compared are kept.
+    #[arg(long, conflicts_with_all = ["plan", "collect", "prepare", "reevaluate"])]
+    pub paired: bool,
     /// Parallel jobs the printed `xargs` line uses (with --plan).
     #[arg(long, default_value_t = 2)]
     pub jobs: usize,
@@ -86,19 +92,30 @@ pub fn run(a: StudyArgs) -> anyhow::Result<()> {
         run::prepare(&study, &a.out, &mut |l| say(l))?;
         return Ok(());
     }
-    if a.reevaluate {
-        let chosen: Vec<(usize, &crate::study::RunSpec)> = match a.run {
-            Some(k) => runs.iter().enumerate().filter(|(i, _)| *i == k).collect(),
-            None => runs.iter().enumerate().collect(),
-        };
-        if chosen.is_empty() {
-            return Err(Error::invalid(
-                "study",
-                "--run",
-                format!("the study has {} runs (0..{})", runs.len(), runs.len()),
-            )
-            .into());
+    if a.paired {
+        for (k, spec) in chosen(&runs, a.run)? {
+            match paired::pair(&study, &a.out, spec, a.backend, &mut |l| say(l))? {
+                Some(d) => say(&format!(
+                    "run {k} {}: compared in {}",
+                    spec.id(),
+                    d.display()
+                )),
+                None => say(&format!(
+                    "run {k} {}: the reference or not finished, skipped",
+                    spec.id()
+                )),
+            }
         }
+        let p = paired::report(&study, &a.out)?;
+        println!("{}", p.markdown);
+        if !p.missing.is_empty() {
+            println!("not compared: {}", p.missing.join(", "));
+        }
+        println!("wrote {}/report/paired.md", a.out.display());
+        return Ok(());
+    }
+    if a.reevaluate {
+        let chosen = chosen(&runs, a.run)?;
         for (k, spec) in chosen {
             match run::reevaluate(&study, &a.out, spec, a.backend, &mut |l| say(l))? {
                 Some(r) => say(&format!(
@@ -175,6 +192,26 @@ pub fn run(a: StudyArgs) -> anyhow::Result<()> {
         ));
     }
     collect(&study, &a)
+}
+
+/// The runs `--run K` picks (all without it), with their indices.
+fn chosen(
+    runs: &[crate::study::RunSpec],
+    k: Option<usize>,
+) -> Result<Vec<(usize, &crate::study::RunSpec)>, Error> {
+    let chosen: Vec<_> = runs
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| k.is_none_or(|k| *i == k))
+        .collect();
+    if chosen.is_empty() {
+        return Err(Error::invalid(
+            "study",
+            "--run",
+            format!("the study has {} runs (0..{})", runs.len(), runs.len()),
+        ));
+    }
+    Ok(chosen)
 }
 
 fn collect(study: &Study, a: &StudyArgs) -> anyhow::Result<()> {

@@ -109,7 +109,7 @@ pub struct EvalReport {
 }
 
 /// Where two runs' renders differ (`EvalOptions::against`).
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
 pub struct Against {
     /// The other run.
     pub run: PathBuf,

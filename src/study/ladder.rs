@@ -10,7 +10,9 @@
 //!   rows), each ablation's change against the full method and the full method minus
 //!   GaussianAvatars; below, per rung, the PSNR change of every variant per face region;
 //! - `ladder_{free,held-out}_{psnr,lpips}.png`: the changes against pixels per triangle, with
-//!   the seed spread as a band around zero.
+//!   the seed spread as a band around zero;
+//! - in `ladder.md`, each rung's `report/paired.md` when `study --paired` has written it
+//!   ([`super::paired`]).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -372,6 +374,21 @@ pub fn collect(outs: &[PathBuf], dest: &Path) -> Result<Ladder> {
                 }
                 md += "\n";
             }
+        }
+    }
+    let paired: Vec<(&Rung, String)> = rungs
+        .iter()
+        .filter_map(|r| {
+            let text = std::fs::read_to_string(r.out.join("report").join("paired.md")).ok()?;
+            // The table without its title line.
+            let body = text.split_once('\n').map_or("", |(_, b)| b).trim();
+            Some((r, body.to_string()))
+        })
+        .collect();
+    if !paired.is_empty() {
+        md += "\n## Where each run's images differ from the full method's (`study --paired`)\n";
+        for (r, body) in paired {
+            md += &format!("\n### {}\n\n{body}\n", r.out.display());
         }
     }
     let write = |name: &str, text: &str| {

@@ -8,10 +8,13 @@
 //! run is skipped, an interrupted one continues from its checkpoint), runnable one at a
 //! time by index (`--run K`) so that a cluster's array job or `xargs -P` can spread them
 //! over machines sharing the output folder (`--plan` writes the command lines and a Slurm
-//! array script), and collected from whatever has finished (`--collect`).
+//! array script), and collected from whatever has finished (`--collect`). [`paired`]
+//! compares each run's images with its subject's full method (`--paired`), and
+//! [`ladder`] reads several studies as the rungs of a resolution ladder (`--ladder`).
 
 pub mod config;
 pub mod ladder;
+pub mod paired;
 pub mod report;
 pub mod run;
 

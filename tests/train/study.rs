@@ -114,6 +114,35 @@ fn a_tiny_study_runs_resumes_and_collects_the_same_through_its_plan() {
     let m = free_psnr("Ours (full)");
     assert!((m - 0.5 * (a + b)).abs() < 1e-9, "{a} {b} {m}");
     assert_ne!(a, b, "two seeds, two avatars");
+    // --paired: each run's renders against the full method with the first seed (seed 1),
+    // per face region; the reference itself is not compared; a second call keeps them.
+    let o = study(&config, &out, &["--paired"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("wrote"), "{stdout}");
+    let paired = std::fs::read_to_string(report.join("paired.md")).unwrap();
+    for row in ["| tiny | Ours (full), seed 2 | ", "| tiny | w/o eta | "] {
+        let line = paired
+            .lines()
+            .find(|l| l.starts_with(row))
+            .unwrap_or_else(|| {
+                panic!("{row}: {paired}");
+            });
+        assert!(line.contains(" dB |"), "{line}");
+    }
+    assert!(!paired.contains("seed 1 |"), "{paired}");
+    let pj: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(report.join("paired.json")).unwrap())
+            .unwrap();
+    assert_eq!(pj["runs"].as_array().unwrap().len(), 2, "{pj}");
+    let against = out.join("runs/tiny/no-eta-seed1/paired/against.md");
+    let before = mtime(&against);
+    let o = study(&config, &out, &["--paired", "--run", "2"]);
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("run 2 tiny/no-eta-seed1: compared in"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_eq!(mtime(&against), before, "kept, not rendered again");
     // The ladder reads collected studies as rungs (here the same study twice).
     let ladder_dir = root.join("ladder");
     let o = Command::new(env!("CARGO_BIN_EXE_texavatars"))
@@ -148,6 +177,10 @@ fn a_tiny_study_runs_resumes_and_collects_the_same_through_its_plan() {
     );
     let md = std::fs::read_to_string(ladder_dir.join("ladder.md")).unwrap();
     assert!(md.contains(&format!("{no_eta:+.2} |")), "{md}");
+    assert!(
+        md.contains("`study --paired`") && md.contains("| tiny | w/o eta | "),
+        "{md}"
+    );
     for f in ["ladder_free_psnr.png", "ladder_held-out_lpips.png"] {
         assert!(ladder_dir.join(f).is_file(), "{f}");
     }
