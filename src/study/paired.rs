@@ -40,7 +40,7 @@ pub fn reference(study: &Study, subject: &str) -> RunSpec {
     }
 }
 
-/// Renders `run` and its subject's [`reference`] at every held-out and FREE frame the
+/// Renders `run` and its subject's [`reference()`] at every held-out and FREE frame the
 /// study scores and writes where they differ into `RUN/paired/` (`against.md`,
 /// `metrics.json`, the difference panels). Returns the folder; `None` when `run` is the
 /// reference or either has not finished. A run already compared is skipped.
