@@ -379,6 +379,14 @@ pub struct RegionScore {
     pub error_share: f64,
 }
 
+impl RegionScore {
+    /// Its share of the squared error over its share of the pixels (above 1: the error
+    /// concentrates here); `None` for a region without pixels.
+    pub fn concentration(&self) -> Option<f64> {
+        (self.pixel_share > 0.0).then(|| self.error_share / self.pixel_share)
+    }
+}
+
 /// How large the mesh's triangles are in a split's scored images: what decides how many
 /// pixels the per-face parts of the method (the Jacobian, Global UV's blending) can act on.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]

@@ -492,25 +492,36 @@ pub fn against_table(a: &Against) -> String {
         "Where this run's renders differ from {}'s, per face region.\n\n| split | region | PSNR between the runs | pixels | share of pixels | share of squared difference | concentration |\n|---|---|---|---|---|---|---|\n",
         a.run.display()
     );
-    for (split, r) in &a.regions {
-        for name in REGIONS {
-            if let Some(x) = r.get(name) {
-                let conc = if x.pixel_share > 0.0 {
-                    format!("{:.2}", x.error_share / x.pixel_share)
-                } else {
-                    "-".into()
-                };
+    s += &region_rows(&a.regions, true);
+    s += "\nConcentration: the region's share of the squared difference over its share of the pixels (above 1: the two runs differ more there than on average). Both runs are posed with the tracked parameters. Regions: `texavatars::eval::regions` (docs/evaluation.md).\n";
+    s
+}
+
+/// One Markdown row per split and region (in [`REGIONS`]' order): PSNR, pixels, share of
+/// the pixels and of the squared error, and with `concentration` their ratio.
+fn region_rows(
+    regions: &BTreeMap<String, BTreeMap<String, RegionScore>>,
+    concentration: bool,
+) -> String {
+    let mut s = String::new();
+    for (split, r) in regions {
+        for (name, x) in REGIONS.iter().filter_map(|n| r.get(*n).map(|x| (n, x))) {
+            s += &format!(
+                "| {split} | {name} | {} | {} | {:.3} | {:.3} |",
+                x.psnr.map_or("-".into(), |p| format!("{p:.2}")),
+                x.pixels,
+                x.pixel_share,
+                x.error_share
+            );
+            if concentration {
                 s += &format!(
-                    "| {split} | {name} | {} | {} | {:.3} | {:.3} | {conc} |\n",
-                    x.psnr.map_or("-".into(), |p| format!("{p:.2}")),
-                    x.pixels,
-                    x.pixel_share,
-                    x.error_share
+                    " {} |",
+                    x.concentration().map_or("-".into(), |c| format!("{c:.2}"))
                 );
             }
+            s.push('\n');
         }
     }
-    s += "\nConcentration: the region's share of the squared difference over its share of the pixels (above 1: the two runs differ more there than on average). Both runs are posed with the tracked parameters. Regions: `texavatars::eval::regions` (docs/evaluation.md).\n";
     s
 }
 
@@ -542,19 +553,7 @@ pub fn regions_table(regions: &BTreeMap<String, BTreeMap<String, RegionScore>>) 
     let mut s = String::from(
         "| split | region | PSNR | pixels | share of pixels | share of squared error |\n|---|---|---|---|---|---|\n",
     );
-    for (split, r) in regions {
-        for name in REGIONS {
-            if let Some(x) = r.get(name) {
-                s += &format!(
-                    "| {split} | {name} | {} | {} | {:.3} | {:.3} |\n",
-                    x.psnr.map_or("-".into(), |p| format!("{p:.2}")),
-                    x.pixels,
-                    x.pixel_share,
-                    x.error_share
-                );
-            }
-        }
-    }
+    s += &region_rows(regions, false);
     s += "\nRegions: `texavatars::eval::regions` (docs/evaluation.md). PSNR is over the region's pixels pooled over the split's scored images.\n";
     s
 }
@@ -590,5 +589,47 @@ mod tests {
                 .to_string();
             assert!(e.contains("canonical_flame_param.npz"), "{e}");
         }
+    }
+
+    #[test]
+    fn region_tables_share_their_rows() {
+        let score = |pixels, pixel_share, error_share| RegionScore {
+            pixels,
+            mse: 0.01,
+            psnr: (pixels > 0).then_some(20.0),
+            pixel_share,
+            error_share,
+        };
+        let split = BTreeMap::from([
+            ("all".to_string(), score(100, 1.0, 1.0)),
+            ("eyes".to_string(), score(10, 0.1, 0.3)),
+            ("mouth".to_string(), score(0, 0.0, 0.0)),
+        ]);
+        let regions = BTreeMap::from([("free".to_string(), split)]);
+        let eyes = &regions["free"]["eyes"];
+        assert!((eyes.concentration().unwrap() - 3.0).abs() < 1e-12);
+        assert_eq!(regions["free"]["mouth"].concentration(), None);
+
+        let plain = regions_table(&regions);
+        let against = against_table(&Against {
+            run: PathBuf::from("other"),
+            regions: regions.clone(),
+        });
+        let rows = |t: &str| -> Vec<String> {
+            t.lines()
+                .filter(|l| l.starts_with("| free |"))
+                .map(String::from)
+                .collect()
+        };
+        let (p, a) = (rows(&plain), rows(&against));
+        assert_eq!(p.len(), 3);
+        // The same rows in REGIONS' order; --against adds the concentration column.
+        for (p, a) in p.iter().zip(&a) {
+            assert!(a.starts_with(p.as_str()), "{a} / {p}");
+        }
+        assert!(p[0].starts_with("| free | all | 20.00 | 100 | 1.000 | 1.000 |"));
+        // REGIONS puts the mouth before the eyes.
+        assert!(a[1].starts_with("| free | mouth |") && a[1].ends_with("| - |"));
+        assert_eq!(a[2], format!("{} 3.00 |", p[2]));
     }
 }

@@ -107,12 +107,6 @@ struct File {
     against: Against,
 }
 
-/// A region's concentration: its share of the squared difference over its share of the
-/// pixels.
-fn concentration(r: &RegionScore) -> Option<f64> {
-    (r.pixel_share > 0.0).then(|| r.error_share / r.pixel_share)
-}
-
 /// Gathers every compared run into `OUT/report/paired.md` and `paired.json`.
 pub fn report(study: &Study, out: &Path) -> Result<Paired> {
     let mut runs = Vec::new();
@@ -187,7 +181,7 @@ pub fn table(study: &Study, runs: &[PairedRun]) -> String {
             for r in REGIONS {
                 let c = regions
                     .and_then(|x| x.get(r))
-                    .and_then(concentration)
+                    .and_then(RegionScore::concentration)
                     .map_or("-".to_string(), |c| format!("{c:.2}"));
                 s += &format!(" {c} |");
             }
