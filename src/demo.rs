@@ -141,6 +141,7 @@ fn curves(run: &Path, metric: &str, what: &str, per_epoch: usize) -> Vec<Series>
         width,
         markers,
         points,
+        errors: Vec::new(),
     };
     vec![
         s(
@@ -192,6 +193,7 @@ fn curve_plots(run: &Path, per_epoch: usize, report: &Path) -> Result<()> {
                 width: 1,
                 markers: false,
                 points,
+                errors: Vec::new(),
             });
         }
     }
@@ -199,6 +201,7 @@ fn curve_plots(run: &Path, per_epoch: usize, report: &Path) -> Result<()> {
         title: title.into(),
         x_label: "iteration".into(),
         y_label: y.into(),
+        log_x: false,
         log_y,
         width: 800,
         height: 500,

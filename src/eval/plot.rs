@@ -61,6 +61,9 @@ pub struct Series {
     pub markers: bool,
     /// (x, y) points; non-finite ones (and on a log axis those <= 0) are skipped.
     pub points: Vec<(f64, f64)>,
+    /// Per point, a half-width drawn as a vertical error bar `y ± e` with caps (none where it
+    /// is missing, zero or not finite; empty: no error bars).
+    pub errors: Vec<f64>,
 }
 
 /// Titles and axes of a [`line_plot`].
@@ -71,6 +74,8 @@ pub struct Figure {
     pub x_label: String,
     /// The y axis' description, with its unit.
     pub y_label: String,
+    /// A logarithmic x axis.
+    pub log_x: bool,
     /// A logarithmic y axis.
     pub log_y: bool,
     /// Image size in pixels.
@@ -82,7 +87,8 @@ pub struct Figure {
 /// large or small magnitudes.
 fn tick_label(v: f64) -> String {
     let a = v.abs();
-    if a == 0.0 || !v.is_finite() {
+    // Below 1e-12: zero reached by adding up float steps (-5.55e-17).
+    if a < 1e-12 || !v.is_finite() {
         return "0".into();
     }
     let trim = |s: String| {
@@ -101,27 +107,46 @@ fn tick_label(v: f64) -> String {
     trim(format!("{v:.digits$}"))
 }
 
-/// The points of `s` that the axis can show.
-fn shown(s: &Series, log_y: bool) -> impl Iterator<Item = (f64, f64)> + '_ {
+/// The points of `s` that the axes can show, with their error bars' half-widths (0: none).
+fn shown(s: &Series, log: (bool, bool)) -> impl Iterator<Item = ((f64, f64), f64)> + '_ {
     s.points
         .iter()
         .copied()
-        .filter(move |&(x, y)| x.is_finite() && y.is_finite() && (!log_y || y > 0.0))
+        .enumerate()
+        .filter(move |&(_, (x, y))| {
+            x.is_finite() && y.is_finite() && (!log.0 || x > 0.0) && (!log.1 || y > 0.0)
+        })
+        .map(|(i, p)| {
+            let e = s
+                .errors
+                .get(i)
+                .copied()
+                .filter(|e| e.is_finite())
+                .unwrap_or(0.0);
+            (p, e.abs())
+        })
 }
 
-/// Data ranges (x, y) over the shown points, padded; defaults when there are none.
-fn ranges(series: &[Series], log_y: bool) -> (Range<f64>, Range<f64>) {
+/// Data ranges (x, y) over the shown points and their error bars, padded; defaults when
+/// there are none.
+fn ranges(series: &[Series], (log_x, log_y): (bool, bool)) -> (Range<f64>, Range<f64>) {
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for (x, y) in series.iter().flat_map(|s| shown(s, log_y)) {
+    for ((x, y), e) in series.iter().flat_map(|s| shown(s, (log_x, log_y))) {
         x0 = x0.min(x);
         x1 = x1.max(x);
-        y0 = y0.min(y);
-        y1 = y1.max(y);
+        // On a log axis a bar reaching zero or below is cut at the axis.
+        y0 = y0.min(if log_y && y - e <= 0.0 { y } else { y - e });
+        y1 = y1.max(y + e);
     }
     if x0 > x1 {
-        return (0.0..1.0, if log_y { 0.1..1.0 } else { 0.0..1.0 });
+        let unit = |log| if log { 0.1..1.0 } else { 0.0..1.0 };
+        return (unit(log_x), unit(log_y));
     }
-    if x1 - x0 < 1e-12 {
+    if log_x {
+        // A tenth of the data's span in decades beyond it on each side (at least 0.05).
+        let pad = (0.1 * (x1 / x0).log10()).max(0.05);
+        (x0, x1) = (x0 / 10f64.powf(pad), x1 * 10f64.powf(pad));
+    } else if x1 - x0 < 1e-12 {
         (x0, x1) = (x0 - 0.5, x1 + 0.5);
     } else if x0 > 0.0 && x0 < 0.05 * (x1 - x0) {
         // Iterations from 1: the axis from 0.
@@ -154,6 +179,34 @@ pub fn line_plot(path: &Path, fig: &Figure, series: &[Series]) -> Result<()> {
     io::image::write_png(path, fig.width, fig.height, &floats)
 }
 
+/// Ticks of a log axis over `r` (positive): labelled at 1, 2 and 5 times the powers of ten
+/// (only the powers where the range spans more than two decades), grid lines at every
+/// integer multiple of them.
+fn log_ticks(r: &Range<f64>) -> (Vec<f64>, Vec<f64>) {
+    let (lo, hi) = (r.start.max(f64::MIN_POSITIVE), r.end);
+    let steps: &[f64] = if hi / lo > 100.0 {
+        &[1.0]
+    } else {
+        &[1.0, 2.0, 5.0]
+    };
+    let (mut bold, mut light) = (Vec::new(), Vec::new());
+    let mut p = 10f64.powf(lo.log10().floor());
+    while p <= hi {
+        for m in 1..10 {
+            let v = p * m as f64;
+            if (lo..=hi).contains(&v) {
+                if steps.contains(&(m as f64)) {
+                    bold.push(v);
+                } else {
+                    light.push(v);
+                }
+            }
+        }
+        p *= 10.0;
+    }
+    (bold, light)
+}
+
 /// [`line_plot`]'s pixels: [H, W, 3] bytes.
 fn render_plot(fig: &Figure, series: &[Series]) -> std::result::Result<Vec<u8>, String> {
     fonts().map_err(|e| e.to_string())?;
@@ -161,11 +214,19 @@ fn render_plot(fig: &Figure, series: &[Series]) -> std::result::Result<Vec<u8>, 
     let mut buf = vec![255u8; w * h * 3];
     {
         let root = BitMapBackend::with_buffer(&mut buf, (w as u32, h as u32)).into_drawing_area();
-        let (x, y) = ranges(series, fig.log_y);
-        let res = if fig.log_y {
-            draw_chart(&root, fig, series, x, y.log_scale())
-        } else {
-            draw_chart(&root, fig, series, x, y)
+        let (x, y) = ranges(series, (fig.log_x, fig.log_y));
+        let res = match (fig.log_x, fig.log_y) {
+            (false, false) => draw_chart(&root, fig, series, x, y),
+            (false, true) => draw_chart(&root, fig, series, x, y.log_scale()),
+            (true, log_y) => {
+                let (bold, light) = log_ticks(&x);
+                let x = x.log_scale().with_key_points(bold).with_light_points(light);
+                if log_y {
+                    draw_chart(&root, fig, series, x, y.log_scale())
+                } else {
+                    draw_chart(&root, fig, series, x, y)
+                }
+            }
         };
         res.map_err(|e| e.source().map_or(e.to_string(), |s| s.to_string()))?;
         root.present().map_err(|e| e.to_string())?;
@@ -196,14 +257,16 @@ fn chart_builder<'a, 'b>(
     b
 }
 
-fn draw_chart<'a, Y>(
+fn draw_chart<'a, X, Y>(
     root: &DrawingArea<BitMapBackend<'a>, Shift>,
     fig: &Figure,
     series: &[Series],
-    x: Range<f64>,
+    x: X,
     y: Y,
 ) -> DrawResult<'a>
 where
+    X: AsRangedCoord<Value = f64>,
+    X::CoordDescType: Ranged<ValueType = f64> + ValueFormatter<f64>,
     Y: AsRangedCoord<Value = f64>,
     Y::CoordDescType: Ranged<ValueType = f64> + ValueFormatter<f64>,
 {
@@ -224,20 +287,21 @@ where
         .label_style((FONT, px(15.0)).into_font().color(&ink))
         .axis_desc_style((FONT, px(17.0)).into_font().color(&ink))
         .bold_line_style(BLACK.mix(0.12))
-        .light_line_style(BLACK.mix(if fig.log_y { 0.05 } else { 0.0 }))
+        .light_line_style(BLACK.mix(if fig.log_x || fig.log_y { 0.05 } else { 0.0 }))
         .axis_style(ink)
         .draw()?;
-    let log_y = fig.log_y;
+    let log = (fig.log_x, fig.log_y);
     let mut labels: Vec<&str> = Vec::new();
     // Where the curves run, in plotting-area pixels (segments sampled every 2 px), to put the
     // legend where it hides the least.
     let base = chart.plotting_area().get_base_pixel();
     let mut occupied: Vec<(i32, i32)> = Vec::new();
     for se in series {
-        let pts: Vec<(f64, f64)> = shown(se, log_y).collect();
-        if pts.is_empty() {
+        let shown: Vec<((f64, f64), f64)> = shown(se, log).collect();
+        if shown.is_empty() {
             continue;
         }
+        let pts: Vec<(f64, f64)> = shown.iter().map(|&(p, _)| p).collect();
         let pix: Vec<(i32, i32)> = pts
             .iter()
             .map(|p| {
@@ -269,6 +333,34 @@ where
                 });
             }
         }
+        let bars: Vec<_> = shown
+            .iter()
+            .filter(|&&(_, e)| e > 0.0)
+            .map(|&((x, y), e)| {
+                let lo = if log.1 && y - e <= 0.0 { y } else { y - e };
+                let (top, bottom) = (
+                    chart.backend_coord(&(x, y + e)),
+                    chart.backend_coord(&(x, lo)),
+                );
+                occupied.extend(
+                    (bottom.1.min(top.1)..=bottom.1.max(top.1))
+                        .step_by(2)
+                        .map(|r| (top.0 - base.0, r - base.1)),
+                );
+                let cap = dot + 1;
+                EmptyElement::at((x, y + e))
+                    + PathElement::new(vec![(-cap, 0), (cap, 0)], color.stroke_width(lw.max(1)))
+                    + PathElement::new(
+                        vec![(0, 0), (0, bottom.1 - top.1)],
+                        color.stroke_width(lw.max(1)),
+                    )
+                    + PathElement::new(
+                        vec![(-cap, bottom.1 - top.1), (cap, bottom.1 - top.1)],
+                        color.stroke_width(lw.max(1)),
+                    )
+            })
+            .collect();
+        chart.draw_series(bars)?;
         if se.markers {
             let ann =
                 chart.draw_series(pts.iter().map(|&p| Circle::new(p, dot, color.filled())))?;
@@ -549,6 +641,7 @@ mod tests {
             title: "Training loss".into(),
             x_label: "iteration".into(),
             y_label: "loss".into(),
+            log_x: false,
             log_y,
             width: 800,
             height: 500,
@@ -564,6 +657,7 @@ mod tests {
         assert_eq!(tick_label(31.25), "31.2");
         assert_eq!(tick_label(1e-4), "1e-4");
         assert_eq!(tick_label(0.0), "0");
+        assert_eq!(tick_label(-5.551115123125783e-17), "0");
     }
 
     #[test]
@@ -575,6 +669,7 @@ mod tests {
             width: 2,
             markers: false,
             points: (0..50).map(|i| (i as f64, (i as f64).sqrt())).collect(),
+            errors: Vec::new(),
         };
         let mut f = fig(false);
         f.title = "PSNR".into();
@@ -614,6 +709,7 @@ mod tests {
                 width: 2,
                 markers: false,
                 points: pts,
+                errors: Vec::new(),
             },
             // nothing to show: no line, no legend entry, no panic
             Series {
@@ -622,6 +718,7 @@ mod tests {
                 width: 2,
                 markers: true,
                 points: vec![(1.0, 0.0), (2.0, -3.0), (3.0, f64::NAN)],
+                errors: Vec::new(),
             },
         ];
         line_plot(&p, &fig(true), &series).expect("log plot");
@@ -669,5 +766,62 @@ mod tests {
         // "x" sits in the middle of the third column
         assert!(ink(&img, 0..h, 2 * w + w / 2 - 8..2 * w + w / 2 + 8) > 5);
         assert_eq!(ink(&img, 0..h, 2 * w..2 * w + w / 3), 0);
+    }
+
+    #[test]
+    fn error_bars_and_a_log_x_axis() {
+        let point = |color: [u8; 3], x: f64, e: f64| Series {
+            label: String::new(),
+            color,
+            width: 0,
+            markers: true,
+            points: vec![(x, 0.0)],
+            errors: vec![e],
+        };
+        let (red, green, blue) = ([230, 20, 20], [20, 200, 20], [20, 20, 230]);
+        let series = [
+            point(red, 1.0, 0.5),
+            point(green, 10.0, 2.0),
+            point(blue, 100.0, 0.0),
+        ];
+        let mut f = fig(false);
+        f.log_x = true;
+        // The y range holds every bar; the log x range pads by factors around 1..100.
+        let (x, y) = ranges(&series, (true, false));
+        assert!(y.start < -2.0 && y.end > 2.0, "{y:?}");
+        assert!(
+            x.start < 1.0 && x.start > 0.5 && x.end > 100.0 && x.end < 200.0,
+            "{x:?}"
+        );
+        let p = tmp("bars");
+        line_plot(&p, &f, &series).expect("plot");
+        let img = io::image::read_rgb(&p).expect("read");
+        // Each colour's pixels: count, mean column, rows spanned.
+        let of = |c: [u8; 3]| {
+            let want = c.map(|v| v as f32 / 255.0);
+            let (mut n, mut col, mut r0, mut r1) = (0usize, 0.0, usize::MAX, 0usize);
+            for (i, px) in img.rgb.chunks(3).enumerate() {
+                if px.iter().zip(want).all(|(a, b)| (a - b).abs() < 0.1) {
+                    n += 1;
+                    col += (i % img.width) as f64;
+                    r0 = r0.min(i / img.width);
+                    r1 = r1.max(i / img.width);
+                }
+            }
+            (n, col / n.max(1) as f64, r1.saturating_sub(r0))
+        };
+        let (r, g, b) = (of(red), of(green), of(blue));
+        assert!(r.0 > 0 && g.0 > 0 && b.0 > 0, "{r:?} {g:?} {b:?}");
+        // 1, 10, 100 are evenly spaced on the log axis.
+        assert!((g.1 - 0.5 * (r.1 + b.1)).abs() < 3.0, "{r:?} {g:?} {b:?}");
+        // Its ticks: the powers of ten over two decades and more, else 1, 2, 5 times them.
+        assert_eq!(log_ticks(&(0.7..150.0)).0, vec![1.0, 10.0, 100.0]);
+        assert_eq!(log_ticks(&(3.5..60.0)).0, vec![5.0, 10.0, 20.0, 50.0]);
+        assert_eq!(log_ticks(&(3.5..60.0)).1[..3], [4.0, 6.0, 7.0]);
+        // The bars' lengths follow their errors (4x); no error, no bar: just the dot.
+        assert!(g.2 > 100, "{g:?}");
+        assert!((g.2 as f64 / r.2 as f64 - 4.0).abs() < 0.5, "{r:?} {g:?}");
+        assert!(b.2 < 10, "{b:?}");
+        let _ = std::fs::remove_file(&p);
     }
 }

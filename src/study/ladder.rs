@@ -9,8 +9,8 @@
 //!   rung: the full method's seed spread (the sample standard deviation of its per-seed
 //!   rows), each ablation's change against the full method and the full method minus
 //!   GaussianAvatars; below, per rung, the PSNR change of every variant per face region;
-//! - `ladder_{free,held-out}_{psnr,lpips}.png`: the changes against pixels per triangle, with
-//!   the seed spread as a band around zero;
+//! - `ladder_{free,held-out}_{psnr,lpips}.png`: the changes against pixels per triangle (a
+//!   log axis), each with its rung's seed spread as an error bar;
 //! - in `ladder.md`, each rung's `report/paired.md` when `study --paired` has written it
 //!   ([`super::paired`]).
 
@@ -284,7 +284,6 @@ pub fn collect(outs: &[PathBuf], dest: &Path) -> Result<Ladder> {
                 [23, 190, 207],
                 [188, 189, 34],
             ];
-            let mut band = Vec::new();
             for r in &rungs {
                 let e = r.effects.get(&key).cloned().unwrap_or_default();
                 let ppt = r.pixels_per_triangle.get(split).copied();
@@ -305,39 +304,54 @@ pub fn collect(outs: &[PathBuf], dest: &Path) -> Result<Ladder> {
                     );
                 }
                 md += "\n";
-                if let (Some(x), Some(s)) = (ppt, e.seed_spread) {
-                    band.push((x, s));
-                }
             }
+            // The full method's level, then each variant with the rung's seed spread as its
+            // error bar; the variants sit side by side around the rung's pixels per triangle
+            // (a factor of 1.03 apart on the log axis) so that their bars stay apart.
+            let xs: Vec<f64> = rungs
+                .iter()
+                .filter_map(|r| r.pixels_per_triangle.get(split).copied())
+                .collect();
+            let (x_lo, x_hi) = xs
+                .iter()
+                .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+            if x_lo <= x_hi {
+                series.push(Series {
+                    label: String::new(),
+                    color: [31, 119, 180],
+                    width: 1,
+                    markers: false,
+                    points: vec![(x_lo, 0.0), (x_hi, 0.0)],
+                    errors: Vec::new(),
+                });
+            }
+            let n = variants.len() as f64;
             for (k, v) in variants.iter().enumerate() {
-                let points: Vec<(f64, f64)> = rungs
+                let shift = 1.03f64.powf(k as f64 - 0.5 * (n - 1.0));
+                let (points, errors): (Vec<(f64, f64)>, Vec<f64>) = rungs
                     .iter()
                     .filter_map(|r| {
                         let x = *r.pixels_per_triangle.get(split)?;
-                        Some((x, *r.effects.get(&key)?.change.get(v)?))
+                        let e = r.effects.get(&key)?;
+                        Some(((x * shift, *e.change.get(v)?), e.seed_spread.unwrap_or(0.0)))
                     })
-                    .collect();
+                    .unzip();
                 series.push(Series {
                     label: column_of(v),
                     color: colors[k % colors.len()],
                     width: 2,
                     markers: true,
                     points,
-                });
-            }
-            for (sign, label) in [(1.0, "full: ± seed spread"), (-1.0, "")] {
-                series.push(Series {
-                    label: label.into(),
-                    color: [31, 119, 180],
-                    width: 1,
-                    markers: true,
-                    points: band.iter().map(|&(x, s)| (x, sign * s)).collect(),
+                    errors,
                 });
             }
             let fig = Figure {
-                title: format!("{split_label}: change against the full method"),
-                x_label: "pixels per visible triangle".into(),
+                title: format!(
+                    "{split_label}: change against the full method (bars: ± seed spread)"
+                ),
+                x_label: "pixels per visible triangle (log scale)".into(),
                 y_label: format!("Δ {}", metric.label()),
+                log_x: true,
                 log_y: false,
                 width: 800,
                 height: 500,

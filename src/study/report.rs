@@ -419,6 +419,7 @@ fn bars(dir: &Path, rows: &[Row]) -> Result<()> {
             title: title.to_string(),
             x_label: "split".into(),
             y_label: "mean over subjects ± std".into(),
+            log_x: false,
             log_y: false,
             width: 1000,
             height: 560,
@@ -479,6 +480,7 @@ fn curves(study: &Study, out: &Path, dir: &Path, runs: &[RunSpec]) -> Result<()>
                 width: 2,
                 markers: false,
                 points,
+                errors: Vec::new(),
             })
         })
         .collect();
@@ -489,6 +491,7 @@ fn curves(study: &Study, out: &Path, dir: &Path, runs: &[RunSpec]) -> Result<()>
         title: "Training PSNR of every run (moving average over 100 iterations)".into(),
         x_label: "iteration".into(),
         y_label: "PSNR (dB)".into(),
+        log_x: false,
         log_y: false,
         width: 1100,
         height: 650,
