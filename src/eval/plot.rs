@@ -127,6 +127,12 @@ fn shown(s: &Series, log: (bool, bool)) -> impl Iterator<Item = ((f64, f64), f64
         })
 }
 
+/// The lower end of a point's error bar: on a log axis a bar reaching zero or below is cut
+/// at the point.
+fn bar_bottom(y: f64, e: f64, log_y: bool) -> f64 {
+    if log_y && y - e <= 0.0 { y } else { y - e }
+}
+
 /// Data ranges (x, y) over the shown points and their error bars, padded; defaults when
 /// there are none.
 fn ranges(series: &[Series], (log_x, log_y): (bool, bool)) -> (Range<f64>, Range<f64>) {
@@ -134,8 +140,7 @@ fn ranges(series: &[Series], (log_x, log_y): (bool, bool)) -> (Range<f64>, Range
     for ((x, y), e) in series.iter().flat_map(|s| shown(s, (log_x, log_y))) {
         x0 = x0.min(x);
         x1 = x1.max(x);
-        // On a log axis a bar reaching zero or below is cut at the axis.
-        y0 = y0.min(if log_y && y - e <= 0.0 { y } else { y - e });
+        y0 = y0.min(bar_bottom(y, e, log_y));
         y1 = y1.max(y + e);
     }
     if x0 > x1 {
@@ -337,7 +342,7 @@ where
             .iter()
             .filter(|&&(_, e)| e > 0.0)
             .map(|&((x, y), e)| {
-                let lo = if log.1 && y - e <= 0.0 { y } else { y - e };
+                let lo = bar_bottom(y, e, log.1);
                 let (top, bottom) = (
                     chart.backend_coord(&(x, y + e)),
                     chart.backend_coord(&(x, lo)),

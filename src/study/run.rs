@@ -32,6 +32,10 @@ pub struct RunRecord {
     pub iterations: usize,
     /// Wall time of the training this record's process did (a resumed run: its part).
     pub train_seconds: f64,
+    /// Iterations this record's process trained in `train_seconds` (a resumed run: its
+    /// part); records written before the field existed read as `iterations`.
+    #[serde(default)]
+    pub trained_iterations: Option<usize>,
     pub eval_seconds: f64,
 }
 
@@ -233,14 +237,22 @@ pub fn run_one(
     let head = head_for(&data)?;
     options.head = Some(head);
     let t0 = Instant::now();
-    let (iterations, complete) = match (study.train_config(run), study.ga_config(run)) {
+    let (iterations, trained, complete) = match (study.train_config(run), study.ga_config(run)) {
         (Some(c), _) => {
             let r = crate::train::train(&c, &options)?;
-            (c.iterations, r.complete)
+            (
+                c.iterations,
+                r.end_iteration - r.start_iteration,
+                r.complete,
+            )
         }
         (None, Some(c)) => {
             let r = crate::train::gaussianavatars::train(&c, &options)?;
-            (c.iterations, r.complete)
+            (
+                c.iterations,
+                r.end_iteration - r.start_iteration,
+                r.complete,
+            )
         }
         (None, None) => {
             return Err(Error::invalid(
@@ -259,7 +271,7 @@ pub fn run_one(
         ));
     }
     progress(&format!(
-        "{}: trained in {train_seconds:.0} s; evaluating",
+        "{}: trained {trained} of {iterations} iterations in {train_seconds:.0} s; evaluating",
         run.id()
     ));
     let eval_seconds = evaluate_run(study, out, run, backend, progress)?;
@@ -269,6 +281,7 @@ pub fn run_one(
         seed: run.seed,
         iterations,
         train_seconds,
+        trained_iterations: Some(trained),
         eval_seconds,
     };
     let path = dir.join(FINISHED);
@@ -359,10 +372,12 @@ pub fn estimate(study: &Study, out: &Path) -> (f64, usize) {
     let per_iteration = |ga: bool| -> Option<f64> {
         let (s, n) = done
             .iter()
-            .filter(|r| (r.variant == Variant::Gaussianavatars) == ga && r.iterations > 0)
-            .fold((0.0, 0usize), |(s, n), r| {
-                (s + r.train_seconds / r.iterations as f64, n + 1)
-            });
+            .filter(|r| (r.variant == Variant::Gaussianavatars) == ga)
+            .filter_map(|r| {
+                let trained = r.trained_iterations.unwrap_or(r.iterations);
+                (trained > 0).then(|| r.train_seconds / trained as f64)
+            })
+            .fold((0.0, 0usize), |(s, n), t| (s + t, n + 1));
         (n > 0).then(|| s / n as f64)
     };
     let eval = if done.is_empty() {
@@ -483,6 +498,43 @@ mod tests {
         assert_eq!(shell_quote("a b"), "'a b'");
         assert_eq!(shell_quote("it's"), "'it'\\''s'");
         assert_eq!(shell_quote(""), "''");
+    }
+
+    #[test]
+    fn the_estimate_divides_a_resumed_run_s_seconds_by_the_iterations_it_trained() {
+        let study = Study::load(Path::new("configs/study_ladder_802.json")).expect("config");
+        let runs = study.runs();
+        assert_eq!(runs.len(), 5);
+        let out = std::env::temp_dir().join(format!("texavatars-estimate-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let first = &runs[0];
+        assert_eq!(first.variant, Variant::Full);
+        let dir = run_dir(&out, first);
+        std::fs::create_dir_all(&dir).expect("mkdir");
+        let write = |record: &str| std::fs::write(dir.join(FINISHED), record).expect("write");
+        // Resumed at iteration 3,000: 100 s for its last 500 iterations, 10 s of eval.
+        write(
+            r#"{"id": "subject0/full-seed0", "variant": "full", "seed": 0, "iterations": 3500,
+                "train_seconds": 100.0, "trained_iterations": 500, "eval_seconds": 10.0}"#,
+        );
+        let (seconds, left) = estimate(&study, &out);
+        assert_eq!(left, 4);
+        let ga = 3500.0 * REFERENCE_GA_STEP + 10.0;
+        assert!(
+            (seconds - (3.0 * (3500.0 * 0.2 + 10.0) + ga)).abs() < 1e-6,
+            "{seconds}"
+        );
+        // A record from before the field: its seconds cover all its iterations.
+        write(
+            r#"{"id": "subject0/full-seed0", "variant": "full", "seed": 0, "iterations": 3500,
+                "train_seconds": 100.0, "eval_seconds": 10.0}"#,
+        );
+        let (seconds, _) = estimate(&study, &out);
+        assert!(
+            (seconds - (3.0 * (100.0 + 10.0) + ga)).abs() < 1e-6,
+            "{seconds}"
+        );
+        let _ = std::fs::remove_dir_all(&out);
     }
 
     #[test]
