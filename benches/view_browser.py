@@ -9,8 +9,8 @@ frames shown per second, and the latency from each input to the frame that shows
 (median, 90th percentile). Optionally saves a screenshot of the page.
 
     python3 benches/view_browser.py --bin target/release/texavatars --seconds 20 \
-        --screenshot docs/images/view.png -- --checkpoint out/demo/run \
-        --motion out/demo/data/union/transforms_test.json
+        --screenshot docs/images/view.png -- --checkpoint out/paper/run \
+        --motion out/paper/data/union/transforms_test.json
 
 Needs Chromium (`apt-get install chromium`; or --chromium PATH). Exits 0 with a message
 when there is none.
